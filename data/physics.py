@@ -1,0 +1,63 @@
+"""Physical plausibility measures computed from global joint positions.
+
+Convention (documented choice, DESIGN.md "Evaluation protocol"): the floor is the plane y = 0,
+which is where HumanML3D's processing puts the lowest *joint centre* of a clip. All inputs are
+global joint positions of shape (T, J, 3) in the skeleton's units; results are in metres.
+
+- Foot skating follows OmniControl's ``calculate_skating_ratio``: toe joints (HumanML3D 10/11),
+  horizontal speed v_t = |Δxz| * fps, v̄ = 5-frame box filter of v (zero padded); frame t skates
+  when, for either foot, the toe is below 5 cm at t and t+1 and both v_t and v̄_t exceed 0.5 m/s.
+  The ratio divides by the T-1 frame pairs.
+- Ground penetration: per frame, how far the lowest joint lies below the floor beyond a
+  tolerance (0 otherwise); averaged over frames.
+- Floating: per frame, how far the lowest joint lies above the floor beyond the tolerance
+  (0 otherwise); averaged over frames. Tolerance 5 mm, as in the public PhysDiff re-implementation.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.ndimage import uniform_filter1d
+
+from data.skeleton import Skeleton
+
+SKATE_HEIGHT_M = 0.05
+SKATE_SPEED_MPS = 0.5
+FLOOR_TOLERANCE_M = 0.005
+
+
+def _metres(joints: np.ndarray, skeleton: Skeleton) -> np.ndarray:
+    joints = np.asarray(joints, dtype=np.float64)
+    if joints.ndim != 3 or joints.shape[1:] != (skeleton.joints_num, 3):
+        raise ValueError(
+            f"expected joints of shape (T, {skeleton.joints_num}, 3), got {joints.shape}"
+        )
+    return joints * skeleton.unit
+
+
+def skating_frames(joints: np.ndarray, skeleton: Skeleton) -> np.ndarray:
+    """Boolean (T-1,) mask of frame pairs (t, t+1) in which a planted toe slides."""
+    pos = _metres(joints, skeleton)
+    toes = pos[:, [skeleton.feet_left[1], skeleton.feet_right[1]]]  # (T, 2, 3)
+    speed = np.linalg.norm(np.diff(toes[..., [0, 2]], axis=0), axis=-1) * skeleton.fps  # (T-1, 2)
+    smooth = uniform_filter1d(speed, size=5, axis=0, mode="constant")
+    low = toes[..., 1] < SKATE_HEIGHT_M  # (T, 2)
+    contact = low[:-1] & low[1:]
+    return np.any(contact & (speed > SKATE_SPEED_MPS) & (smooth > SKATE_SPEED_MPS), axis=1)
+
+
+def foot_skating_ratio(joints: np.ndarray, skeleton: Skeleton) -> float:
+    """Fraction of the T-1 frame pairs that skate (see module docstring)."""
+    return float(skating_frames(joints, skeleton).mean())
+
+
+def ground_penetration(joints: np.ndarray, skeleton: Skeleton, tol: float = FLOOR_TOLERANCE_M) -> float:
+    """Mean over frames of max(0, -min_j y - tol), in metres."""
+    lowest = _metres(joints, skeleton)[..., 1].min(axis=1)
+    return float(np.where(lowest < -tol, -lowest, 0.0).mean())
+
+
+def floating(joints: np.ndarray, skeleton: Skeleton, tol: float = FLOOR_TOLERANCE_M) -> float:
+    """Mean over frames of the lowest joint's height when above ``tol``, else 0, in metres."""
+    lowest = _metres(joints, skeleton)[..., 1].min(axis=1)
+    return float(np.where(lowest > tol, lowest, 0.0).mean())

@@ -1,0 +1,1 @@
+"""motionforge pipelines package."""

@@ -1,0 +1,63 @@
+"""Configuration: committed params.yaml == composed conf/ defaults; overrides and their errors."""
+
+import pytest
+
+from pipelines.config import (
+    PARAMS_PATH,
+    ConfigError,
+    apply_overrides,
+    compose_params,
+    load_params,
+    main,
+    read_params,
+)
+
+
+def test_committed_params_equal_composed_defaults():
+    assert read_params(PARAMS_PATH) == compose_params()
+
+
+def test_group_choice_recomposes_conf():
+    kit = load_params(["dataset=kit", "scale=smoke"])
+    assert kit["data"]["skeleton"] == "kit"
+    assert kit["data"]["root"] == "datasets/KIT-ML"
+    assert kit["scale"] == "smoke"
+    # other sections come from conf/config.yaml unchanged
+    assert kit["features"] == compose_params()["features"]
+
+
+def test_dotted_override_parses_yaml_values_and_keeps_the_rest():
+    params = {"data": {"on_error": "fail", "max_frames": 200}, "seed": 0}
+    out = apply_overrides(params, ["data.on_error=skip", "data.max_frames=150", "seed=3"])
+    assert out == {"data": {"on_error": "skip", "max_frames": 150}, "seed": 3}
+    assert params["data"]["on_error"] == "fail"  # input not mutated
+
+
+def test_unknown_key_is_an_error_naming_it():
+    with pytest.raises(ConfigError, match="data.on_eror"):
+        apply_overrides({"data": {"on_error": "fail"}}, ["data.on_eror=skip"])
+    with pytest.raises(ConfigError, match="nope"):
+        apply_overrides({"data": {}}, ["nope.x=1"])
+    with pytest.raises(ConfigError, match="key=value"):
+        apply_overrides({}, ["seed"])
+
+
+def test_plus_adds_a_new_key():
+    assert apply_overrides({"a": {}}, ["+a.b.c=1"]) == {"a": {"b": {"c": 1}}}
+
+
+def test_check_mode_detects_a_stale_params_file(tmp_path):
+    stale = tmp_path / "params.yaml"
+    stale.write_text("seed: 1\n")
+    with pytest.raises(SystemExit, match="differs"):
+        main(["--check", "--out", str(stale)])
+    main(["--out", str(stale)])
+    main(["--check", "--out", str(stale)])
+    assert read_params(stale) == compose_params()
+
+
+def test_malformed_params_file_names_the_file(tmp_path):
+    bad = tmp_path / "params.yaml"
+    bad.write_text("- a list\n")
+    with pytest.raises(ConfigError, match="params.yaml"):
+        read_params(bad)
