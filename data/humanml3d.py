@@ -1,0 +1,890 @@
+"""Reader and writer of the HumanML3D dataset layout.
+
+Layout under a dataset ``root`` (HumanML3D's, see DESIGN.md "Dataset layout")::
+
+    new_joints/<id>.npy       (T, J, 3) float32 global joint positions   } at least one
+    new_joint_vecs/<id>.npy   (T, 12J-1) float32 features                 } of the two
+    texts/<id>.txt            one caption per line: ``caption#word/POS ...#start#end``
+    train.txt val.txt test.txt   clip ids, one per line
+    actions.txt               optional ``id,label`` lines (written by the synthetic generator)
+
+Loading follows HumanML3D's ``Text2MotionDatasetV2`` (reference A.7):
+
+* A clip's *feature length* is ``T - 1`` for ``new_joints`` (features are computed on frame
+  pairs) and ``T`` for ``new_joint_vecs``. A clip is kept only if
+  ``min_frames <= length < max_frames``.
+* A caption with ``start == end == 0`` describes the whole clip; the whole-clip item exists
+  only if there is at least one such caption, and it carries all of them.
+* Any other caption is its own item covering feature frames
+  ``[int(start * fps), int(end * fps))`` (clamped to the clip, like Python slicing), kept only
+  if its length is within the same bounds. The reference hard-codes 20 fps here; we use the
+  skeleton's fps, which is the same for HumanML3D (KIT-ML's captions carry no spans).
+* Item ids are deterministic: ``clip_id`` for the whole-clip item and
+  ``f"{clip_id}@{start}-{end}"`` for a span (``~2``, ``~3``... appended when several captions
+  share one span). HumanML3D instead prefixes a random letter ``A``..``W`` and ``_``.
+
+Motions outside the length bounds are a standard filter, not bad input: they are listed in
+:attr:`SplitData.filtered`. Bad input (missing, corrupt or mis-shaped files, non-finite values,
+unparsable captions...) is always a :class:`Problem`; ``on_error="fail"`` collects every problem
+of the split and raises one :class:`DatasetError`, ``on_error="skip"`` drops the bad clips and
+lists their problems in :attr:`SplitData.skipped`. Dataset-level problems (a missing split file,
+a malformed ``actions.txt``) raise in both modes. Reading never writes.
+
+Caveat: HumanML3D's own ``new_joints`` are ``recover_from_ric(new_joint_vecs)`` and so have as
+many frames as the features; reading them with ``source="joints"`` counts one frame fewer than
+the reference loader does. Use ``source="features"`` to reproduce the reference filter on real
+HumanML3D data.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import re
+import shutil
+import uuid
+import warnings
+from collections.abc import Iterable, Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from data.skeleton import Skeleton
+
+JOINTS_DIR = "new_joints"
+FEATURES_DIR = "new_joint_vecs"
+TEXTS_DIR = "texts"
+ACTIONS_FILE = "actions.txt"
+SPLITS: tuple[str, ...] = ("train", "val", "test")
+SOURCES: tuple[str, ...] = ("auto", "joints", "features")
+ON_ERROR: tuple[str, ...] = ("fail", "skip")
+DEFAULT_MAX_FRAMES = 200
+
+# Clip ids become file names and split-file lines: letters, digits, '_', '-', '.', not starting
+# with '.'. '@' and '~' are reserved for span item ids, ',' for actions.txt.
+_CLIP_ID_RE = re.compile(r"[A-Za-z0-9_\-][A-Za-z0-9_\-.]*")
+_SPLIT_NAME_RE = re.compile(r"[A-Za-z0-9_\-]+")
+_FORBIDDEN_IN_TEXT = ("#", "\n", "\r")
+
+
+# --------------------------------------------------------------------------------------------
+# Captions
+# --------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Caption:
+    """One line of a ``texts/<id>.txt`` file.
+
+    Attributes:
+        text: the caption (leading/trailing whitespace is stripped; must be non-empty and must
+            not contain ``#`` or line breaks).
+        tokens: ``(word, POS)`` pairs (spaCy tags in HumanML3D); may be empty.
+        start, end: span in seconds; ``start == end == 0`` means the whole clip.
+
+    Raises:
+        ValueError: on construction, if the caption cannot be written as one valid line.
+    """
+
+    text: str
+    tokens: tuple[tuple[str, str], ...]
+    start: float = 0.0
+    end: float = 0.0
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.text, str):
+            raise ValueError(f"caption text must be a str, got {type(self.text).__name__}")
+        text = self.text.strip()
+        if not text:
+            raise ValueError("empty caption")
+        if any(ch in text for ch in _FORBIDDEN_IN_TEXT):
+            raise ValueError(f"caption text contains '#' or a line break: {text!r}")
+        object.__setattr__(self, "text", text)
+        object.__setattr__(self, "tokens", _normalise_tokens(self.tokens))
+        start, end = _check_time(self.start, "start"), _check_time(self.end, "end")
+        if start > end:
+            raise ValueError(f"start {start} > end {end}")
+        object.__setattr__(self, "start", start)
+        object.__setattr__(self, "end", end)
+
+    @property
+    def is_whole_clip(self) -> bool:
+        """True for a ``0.0#0.0`` caption, which describes the whole clip."""
+        return self.start == 0.0 and self.end == 0.0
+
+    def to_line(self) -> str:
+        """Serialise as ``"text#w/POS w/POS#start#end"`` (no newline); inverse of from_line."""
+        tokens = " ".join(f"{word}/{pos}" for word, pos in self.tokens)
+        return f"{self.text}#{tokens}#{self.start!r}#{self.end!r}"
+
+    @classmethod
+    def from_line(cls, line: str) -> Caption:
+        """Parse one caption line; NaN times read as 0 (HumanML3D).
+
+        Raises:
+            ValueError: with the reason (field count, bad float, start > end, bad token, ...).
+        """
+        fields = line.strip().split("#")
+        if len(fields) != 4:
+            raise ValueError(f"expected 4 '#'-separated fields (caption#tokens#start#end), got {len(fields)}")
+        text, tokens, start, end = fields
+        return cls(text, _parse_tokens(tokens), _parse_time(start, "start"), _parse_time(end, "end"))
+
+
+def _normalise_tokens(tokens: Iterable[Sequence[str]]) -> tuple[tuple[str, str], ...]:
+    """Tuple-of-pairs copy of ``tokens``; raises ValueError on a pair that cannot be written."""
+    out = []
+    for token in tokens:
+        if len(token) != 2 or not all(isinstance(part, str) for part in token):
+            raise ValueError(f"token must be a (word, POS) pair of str, got {token!r}")
+        word, pos = token
+        if not word or not pos or "/" in pos or _has_space_or_hash(word) or _has_space_or_hash(pos):
+            raise ValueError(f"invalid token {word!r}/{pos!r}")
+        out.append((word, pos))
+    return tuple(out)
+
+
+def _has_space_or_hash(s: str) -> bool:
+    return "#" in s or any(ch.isspace() for ch in s)
+
+
+def _parse_tokens(field_text: str) -> tuple[tuple[str, str], ...]:
+    """Parse ``"w/POS w/POS"``; the POS is after the last '/'. Raises ValueError."""
+    pairs = []
+    for token in field_text.split():
+        word, sep, pos = token.rpartition("/")
+        if not sep or not word or not pos:
+            raise ValueError(f"token {token!r} is not word/POS")
+        pairs.append((word, pos))
+    return tuple(pairs)
+
+
+def _parse_time(field_text: str, name: str) -> float:
+    """Parse a start/end field in seconds; NaN reads as 0. Raises ValueError."""
+    try:
+        value = float(field_text)
+    except ValueError:
+        raise ValueError(f"{name} {field_text!r} is not a number") from None
+    return 0.0 if math.isnan(value) else value
+
+
+def _check_time(value: float, name: str) -> float:
+    """Return ``value`` as a float if it is a finite, non-negative time. Raises ValueError."""
+    try:
+        value = float(value)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name} {value!r} is not a number") from None
+    if not math.isfinite(value) or value < 0:
+        raise ValueError(f"{name} {value} is not a finite non-negative time")
+    return value
+
+
+# --------------------------------------------------------------------------------------------
+# Records
+# --------------------------------------------------------------------------------------------
+
+
+@dataclass
+class Clip:
+    """One motion with its captions, as given to :func:`write_dataset`.
+
+    Attributes:
+        clip_id: file stem (letters, digits, ``_``, ``-``, ``.``; not starting with ``.``).
+        captions: at least one caption.
+        joints: (T, J, 3) global joint positions, written to ``new_joints/``.
+        features: (T', 12J-1) features, written to ``new_joint_vecs/``.
+        action: optional action label, written to ``actions.txt``.
+    """
+
+    clip_id: str
+    captions: list[Caption]
+    joints: np.ndarray | None = None
+    features: np.ndarray | None = None
+    action: str | None = None
+
+
+@dataclass(frozen=True)
+class Problem:
+    """A defect in the input: ``path`` is the file at fault (``file:line`` for a line)."""
+
+    path: str
+    reason: str
+
+    def __str__(self) -> str:
+        return f"{self.path}: {self.reason}"
+
+
+class DatasetError(Exception):
+    """Bad dataset input; ``problems`` lists every defect found and ``str()`` shows them all."""
+
+    def __init__(self, problems: Sequence[Problem], context: str = "dataset") -> None:
+        super().__init__(list(problems), context)
+        self.problems: list[Problem] = list(problems)
+        self.context = context
+
+    def __str__(self) -> str:
+        lines = [f"{len(self.problems)} problem(s) in {self.context}:"]
+        lines += [f"  - {problem}" for problem in self.problems]
+        return "\n".join(lines)
+
+
+@dataclass(frozen=True)
+class MotionItem:
+    """One training/evaluation item (HumanML3D's ``data_dict`` entry).
+
+    Attributes:
+        item_id: ``clip_id`` for the whole-clip item; ``f"{clip_id}@{start}-{end}"`` for a span
+            (``~k`` appended for the k-th caption on the same span). Deterministic, unlike
+            HumanML3D's random-letter prefix.
+        clip_id: the clip in :attr:`SplitData.clips`.
+        captions: all whole-clip captions for the whole-clip item; the one caption of a span.
+        start, end: range ``[start, end)`` in the clip's *feature* frames. For a clip read from
+            ``new_joints`` feature frame ``i`` spans joint frames ``i`` and ``i + 1``, so the
+            joints are ``joints[start : end + 1]``.
+        action: the clip's action label, if any.
+    """
+
+    item_id: str
+    clip_id: str
+    captions: tuple[Caption, ...]
+    start: int
+    end: int
+    action: str | None
+
+    @property
+    def length(self) -> int:
+        """Number of feature frames."""
+        return self.end - self.start
+
+
+@dataclass
+class LoadedClip:
+    """A clip's motion as read: exactly one of ``joints`` / ``features`` is set (float32)."""
+
+    joints: np.ndarray | None = None
+    features: np.ndarray | None = None
+
+    @property
+    def length(self) -> int:
+        """Length in feature frames: ``T - 1`` for joints, ``T`` for features."""
+        if self.joints is not None:
+            return len(self.joints) - 1
+        assert self.features is not None
+        return len(self.features)
+
+
+@dataclass
+class SplitData:
+    """Result of :func:`read_split`.
+
+    Attributes:
+        split: split name.
+        clips: clip id -> motion, for every clip that has at least one item.
+        items: items in split-file order (whole-clip item first, then spans in line order).
+        skipped: problems of the clips dropped by ``on_error="skip"`` (empty in fail mode).
+        filtered: clips and spans dropped by the standard length filter (not errors).
+    """
+
+    split: str
+    clips: dict[str, LoadedClip] = field(default_factory=dict)
+    items: list[MotionItem] = field(default_factory=list)
+    skipped: list[Problem] = field(default_factory=list)
+    filtered: list[Problem] = field(default_factory=list)
+
+
+# --------------------------------------------------------------------------------------------
+# Validation helpers shared by reader and writer
+# --------------------------------------------------------------------------------------------
+
+
+def clip_id_problem(clip_id: object) -> str | None:
+    """Why ``clip_id`` is not a valid clip id, or None if it is."""
+    if not isinstance(clip_id, str):
+        return f"clip id must be a str, got {type(clip_id).__name__}"
+    if not _CLIP_ID_RE.fullmatch(clip_id):
+        return f"invalid clip id {clip_id!r} (allowed: letters, digits, '_', '-', '.'; not leading '.')"
+    return None
+
+
+def _check_split_name(split: str) -> None:
+    """Raise ValueError unless ``split`` is a plain split name (file ``<split>.txt``)."""
+    if not isinstance(split, str) or not _SPLIT_NAME_RE.fullmatch(split) or split == "actions":
+        raise ValueError(f"invalid split name {split!r}")
+
+
+def _array_problem(arr: np.ndarray, skeleton: Skeleton | None, kind: str) -> str | None:
+    """Why ``arr`` is not a valid joints/features array, or None. ``kind``: joints|features."""
+    if not (np.issubdtype(arr.dtype, np.floating) or np.issubdtype(arr.dtype, np.integer)):
+        return f"dtype {arr.dtype} is not a real number type"
+    if kind == "joints":
+        shape_reason = _joints_shape_problem(arr.shape, skeleton)
+    else:
+        shape_reason = _features_shape_problem(arr.shape, skeleton)
+    if shape_reason:
+        return shape_reason
+    bad = ~np.isfinite(arr)
+    if bad.any():
+        frame = int(np.argwhere(bad)[0][0])
+        return f"{int(bad.sum())} non-finite values (NaN/inf), first in frame {frame}"
+    return None
+
+
+def _to_float32(arr: np.ndarray) -> np.ndarray:
+    """float32 copy; values beyond float32's range become inf (and are then reported)."""
+    with np.errstate(over="ignore"):
+        return arr.astype(np.float32)
+
+
+def _joints_shape_problem(shape: tuple[int, ...], skeleton: Skeleton | None) -> str | None:
+    """Why ``shape`` is not (T>=2, J, 3), or None."""
+    joints = skeleton.joints_num if skeleton else None
+    expected = f"(T, {joints if joints else 'J'}, 3)"
+    if len(shape) != 3 or shape[2] != 3 or (joints is not None and shape[1] != joints):
+        return f"wrong shape {shape}, expected {expected}"
+    if shape[0] < 2:
+        return f"{shape[0]} frame(s): too short to compute features (need T >= 2)"
+    return None
+
+
+def _features_shape_problem(shape: tuple[int, ...], skeleton: Skeleton | None) -> str | None:
+    """Why ``shape`` is not (T>=1, 12J-1), or None."""
+    dim = skeleton.feature_dim if skeleton else None
+    if len(shape) != 2 or (dim is not None and shape[1] != dim) or (dim is None and shape[1] % 12 != 11):
+        return f"wrong shape {shape}, expected (T, {dim if dim else '12J-1'})"
+    if shape[0] < 1:
+        return "0 frames"
+    return None
+
+
+# --------------------------------------------------------------------------------------------
+# Reading files
+# --------------------------------------------------------------------------------------------
+
+
+def load_npy(path: Path) -> np.ndarray:
+    """Read a plain ``.npy`` array (no pickles, no ``.npz``, no trailing bytes).
+
+    Raises:
+        ValueError: the file is not a complete, well-formed ``.npy`` array.
+        OSError: the file cannot be read.
+    """
+    with open(path, "rb") as f:
+        try:
+            arr = np.lib.format.read_array(f, allow_pickle=False)
+        except EOFError as exc:
+            raise ValueError(f"truncated: {exc}") from None
+        if f.read(1):
+            raise ValueError("trailing bytes after the array data")
+    return arr
+
+
+def _read_motion(path: Path, skeleton: Skeleton, kind: str) -> tuple[np.ndarray | None, Problem | None]:
+    """Load and validate one motion file; returns (float32 array, None) or (None, Problem)."""
+    try:
+        arr = load_npy(path)
+    except (OSError, ValueError) as exc:
+        return None, Problem(str(path), f"unreadable or corrupt .npy: {exc}")
+    reason = _array_problem(arr, skeleton, kind)
+    if reason is None and arr.dtype != np.float32:
+        arr = _to_float32(arr)
+        reason = _array_problem(arr, skeleton, kind)  # float64 -> float32 may overflow to inf
+    if reason is not None:
+        return None, Problem(str(path), reason)
+    return arr, None
+
+
+def _decode_text(path: Path, missing: str) -> tuple[str | None, Problem | None]:
+    """Read a UTF-8 text file (BOM allowed); returns (text, None) or (None, Problem).
+
+    ``missing`` is the Problem reason used when the file does not exist.
+    """
+    try:
+        raw = path.read_bytes()
+    except FileNotFoundError:
+        return None, Problem(str(path), missing)
+    except OSError as exc:
+        return None, Problem(str(path), f"unreadable: {exc}")
+    try:
+        return raw.decode("utf-8-sig"), None
+    except UnicodeDecodeError as exc:
+        return None, Problem(str(path), f"not UTF-8 text (byte {exc.start}: {exc.reason})")
+
+
+def _content_lines(text: str) -> list[tuple[int, str]]:
+    """(1-based line number, stripped line) of the non-blank lines, split on '\\n' only."""
+    return [(n, line.strip()) for n, line in enumerate(text.split("\n"), 1) if line.strip()]
+
+
+def parse_captions(path: Path) -> tuple[list[Caption], list[Problem]]:
+    """Read ``texts/<id>.txt``: its captions and one Problem per defect (``file:line``).
+
+    Blank lines are ignored; a file without any caption line is a problem.
+    """
+    text, problem = _decode_text(path, "no caption file for this motion")
+    if problem:
+        return [], [problem]
+    captions, problems = [], []
+    for lineno, line in _content_lines(text):
+        try:
+            captions.append(Caption.from_line(line))
+        except ValueError as exc:
+            problems.append(Problem(f"{path}:{lineno}", f"bad caption line: {exc}"))
+    if not captions and not problems:
+        problems.append(Problem(str(path), "no caption lines"))
+    return captions, problems
+
+
+def read_captions(path: Path) -> list[Caption]:
+    """Captions of one text file; raises DatasetError listing every bad line."""
+    captions, problems = parse_captions(Path(path))
+    if problems:
+        raise DatasetError(problems, str(path))
+    return captions
+
+
+def parse_split_ids(root: Path, split: str) -> tuple[list[str], list[Problem]]:
+    """Ids of ``<root>/<split>.txt`` in order, plus problems of bad or repeated ids.
+
+    Raises:
+        DatasetError: the split file is missing, unreadable or not UTF-8.
+    """
+    _check_split_name(split)
+    path = Path(root) / f"{split}.txt"
+    text, problem = _decode_text(path, "split file not found")
+    if problem:
+        raise DatasetError([problem], f"split {split!r}")
+    ids: list[str] = []
+    problems: list[Problem] = []
+    first_line: dict[str, int] = {}
+    for lineno, clip_id in _content_lines(text):
+        reason = clip_id_problem(clip_id)
+        if reason is None and clip_id in first_line:
+            reason = f"duplicate id {clip_id!r} (first on line {first_line[clip_id]})"
+        if reason:
+            problems.append(Problem(f"{path}:{lineno}", reason))
+            continue
+        first_line[clip_id] = lineno
+        ids.append(clip_id)
+    return ids, problems
+
+
+def read_split_ids(root: Path, split: str) -> list[str]:
+    """Ids of a split file; raises DatasetError on a missing file or any bad line."""
+    ids, problems = parse_split_ids(root, split)
+    if problems:
+        raise DatasetError(problems, f"split {split!r}")
+    return ids
+
+
+def parse_actions(root: Path) -> tuple[dict[str, str], list[Problem]]:
+    """``actions.txt`` as {clip_id: label} (empty if absent) plus one Problem per bad line."""
+    path = Path(root) / ACTIONS_FILE
+    if not path.exists():
+        return {}, []
+    text, problem = _decode_text(path, "file not found")
+    if problem:
+        return {}, [problem]
+    actions: dict[str, str] = {}
+    problems: list[Problem] = []
+    for lineno, line in _content_lines(text):
+        clip_id, sep, label = (part.strip() for part in line.partition(","))
+        reason = _action_line_problem(clip_id, sep, label, actions)
+        if reason:
+            problems.append(Problem(f"{path}:{lineno}", reason))
+        else:
+            actions[clip_id] = label
+    return actions, problems
+
+
+def _action_line_problem(clip_id: str, sep: str, label: str, seen: Mapping[str, str]) -> str | None:
+    """Why an ``id,label`` line is malformed, or None."""
+    if not sep:
+        return "expected 'id,label'"
+    if not label:
+        return "empty action label"
+    reason = clip_id_problem(clip_id)
+    if reason:
+        return reason
+    if clip_id in seen:
+        return f"duplicate id {clip_id!r}"
+    return None
+
+
+def load_actions(root: Path) -> dict[str, str]:
+    """``actions.txt`` as {clip_id: label}; {} if absent; raises DatasetError if malformed."""
+    actions, problems = parse_actions(root)
+    if problems:
+        raise DatasetError(problems, ACTIONS_FILE)
+    return actions
+
+
+# --------------------------------------------------------------------------------------------
+# read_split
+# --------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class _Bounds:
+    """Length filter ``low <= n < high`` in feature frames."""
+
+    low: int
+    high: int
+
+    def reason(self, length: int) -> str | None:
+        """Why ``length`` is filtered out, or None if it is kept."""
+        if length < self.low:
+            return f"length {length} < min_frames {self.low}"
+        if length >= self.high:
+            return f"length {length} >= max_frames {self.high}"
+        return None
+
+
+def _motion_path(root: Path, clip_id: str, source: str) -> tuple[str, Path] | Problem:
+    """(kind, path) of the clip's motion file for ``source``, or a Problem if there is none."""
+    joints = root / JOINTS_DIR / f"{clip_id}.npy"
+    features = root / FEATURES_DIR / f"{clip_id}.npy"
+    if source in ("auto", "joints") and joints.is_file():
+        return "joints", joints
+    if source in ("auto", "features") and features.is_file():
+        return "features", features
+    if source == "auto":
+        return Problem(str(joints), f"no motion file for split id (neither {joints} nor {features})")
+    return Problem(str(joints if source == "joints" else features), "no motion file for split id")
+
+
+def _load_clip(
+    root: Path, clip_id: str, skeleton: Skeleton, source: str
+) -> tuple[LoadedClip | None, list[Caption], list[Problem]]:
+    """Motion and captions of one clip, with every problem found in either."""
+    problems: list[Problem] = []
+    loaded = None
+    located = _motion_path(root, clip_id, source)
+    if isinstance(located, Problem):
+        problems.append(located)
+    else:
+        kind, path = located
+        arr, problem = _read_motion(path, skeleton, kind)
+        if problem:
+            problems.append(problem)
+        else:
+            loaded = LoadedClip(joints=arr) if kind == "joints" else LoadedClip(features=arr)
+    captions, caption_problems = parse_captions(root / TEXTS_DIR / f"{clip_id}.txt")
+    return loaded, captions, problems + caption_problems
+
+
+def _span_frames(caption: Caption, fps: float, length: int) -> tuple[int, int]:
+    """Feature-frame range of a span caption, as ``motion[int(start*fps):int(end*fps)]``."""
+    start, end = int(caption.start * fps), int(caption.end * fps)
+    return min(start, length), min(end, length)
+
+
+def _clip_items(
+    clip_id: str,
+    length: int,
+    captions: Sequence[Caption],
+    action: str | None,
+    bounds: _Bounds,
+    fps: float,
+    text_path: Path,
+) -> tuple[list[MotionItem], list[Problem]]:
+    """Items of one clip that passed the clip-length filter, and the filtered spans."""
+    whole = tuple(c for c in captions if c.is_whole_clip)
+    items = [MotionItem(clip_id, clip_id, whole, 0, length, action)] if whole else []
+    filtered: list[Problem] = []
+    used: dict[str, int] = {}
+    for caption in captions:
+        if caption.is_whole_clip:
+            continue
+        start, end = _span_frames(caption, fps, length)
+        reason = bounds.reason(end - start)
+        if reason:
+            span = f"span {caption.start}-{caption.end} s = frames [{start}, {end})"
+            filtered.append(Problem(str(text_path), f"{span}: {reason}: {caption.text!r}"))
+            continue
+        base = f"{clip_id}@{start}-{end}"
+        used[base] = used.get(base, 0) + 1
+        item_id = base if used[base] == 1 else f"{base}~{used[base]}"
+        items.append(MotionItem(item_id, clip_id, (caption,), start, end, action))
+    return items, filtered
+
+
+def _check_options(source: str, on_error: str, min_frames: int, max_frames: int) -> None:
+    """Raise ValueError on an unknown option value or empty length bounds."""
+    if source not in SOURCES:
+        raise ValueError(f"unknown source {source!r}; expected one of {SOURCES}")
+    if on_error not in ON_ERROR:
+        raise ValueError(f"unknown on_error {on_error!r}; expected one of {ON_ERROR}")
+    if not 1 <= min_frames < max_frames:
+        raise ValueError(f"need 1 <= min_frames < max_frames, got {min_frames}, {max_frames}")
+
+
+def read_split(
+    root: Path,
+    split: str,
+    skeleton: Skeleton,
+    *,
+    source: str = "auto",
+    on_error: str = "fail",
+    min_frames: int | None = None,
+    max_frames: int = DEFAULT_MAX_FRAMES,
+) -> SplitData:
+    """Read one split of a HumanML3D-layout dataset into clips and items.
+
+    Args:
+        root: dataset root.
+        split: split name; reads ``<root>/<split>.txt``.
+        skeleton: expected skeleton (joint count, feature dim, fps, default min_frames).
+        source: ``"joints"`` reads ``new_joints``, ``"features"`` reads ``new_joint_vecs``,
+            ``"auto"`` reads ``new_joints/<id>.npy`` when it exists and otherwise
+            ``new_joint_vecs/<id>.npy`` (decided per clip).
+        on_error: ``"fail"`` raises one DatasetError listing every problem of the split;
+            ``"skip"`` drops bad clips and lists their problems in ``SplitData.skipped``.
+        min_frames: minimum feature length (default ``skeleton.min_frames``).
+        max_frames: exclusive maximum feature length.
+
+    Raises:
+        ValueError: unknown ``source``/``on_error``, invalid split name or bounds.
+        DatasetError: bad input (see module docstring); always for a missing split file or a
+            malformed actions.txt.
+    """
+    low = skeleton.min_frames if min_frames is None else min_frames
+    _check_options(source, on_error, low, max_frames)
+    root = Path(root)
+    bounds = _Bounds(low, max_frames)
+    ids, problems = parse_split_ids(root, split)
+    actions, action_problems = parse_actions(root)
+    data = SplitData(split=split)
+    for clip_id in ids:
+        loaded, captions, clip_problems = _load_clip(root, clip_id, skeleton, source)
+        if clip_problems:
+            problems += clip_problems
+            continue
+        assert loaded is not None
+        _add_clip(data, root, clip_id, loaded, captions, actions.get(clip_id), bounds, skeleton.fps)
+    if action_problems or (problems and on_error == "fail"):
+        raise DatasetError(action_problems + problems, f"split {split!r} of {root}")
+    data.skipped = problems
+    return data
+
+
+def _add_clip(
+    data: SplitData,
+    root: Path,
+    clip_id: str,
+    loaded: LoadedClip,
+    captions: Sequence[Caption],
+    action: str | None,
+    bounds: _Bounds,
+    fps: float,
+) -> None:
+    """Apply the length filters to a valid clip and add it and its items to ``data``."""
+    motion_dir = JOINTS_DIR if loaded.joints is not None else FEATURES_DIR
+    motion_path = str(root / motion_dir / f"{clip_id}.npy")
+    reason = bounds.reason(loaded.length)
+    if reason:
+        data.filtered.append(Problem(motion_path, f"clip {reason} (feature frames)"))
+        return
+    text_path = root / TEXTS_DIR / f"{clip_id}.txt"
+    items, filtered = _clip_items(clip_id, loaded.length, captions, action, bounds, fps, text_path)
+    data.filtered += filtered
+    if not items:
+        data.filtered.append(Problem(motion_path, "no item left: no whole-clip caption and every span filtered"))
+        return
+    data.clips[clip_id] = loaded
+    data.items += items
+
+
+def read_splits(
+    root: Path, skeleton: Skeleton, splits: Sequence[str] = SPLITS, **options: object
+) -> dict[str, SplitData]:
+    """:func:`read_split` for several splits; in fail mode one DatasetError lists all problems."""
+    result: dict[str, SplitData] = {}
+    problems: list[Problem] = []
+    for split in splits:
+        try:
+            result[split] = read_split(root, split, skeleton, **options)  # type: ignore[arg-type]
+        except DatasetError as exc:
+            problems += exc.problems
+    if problems:
+        raise DatasetError(list(dict.fromkeys(problems)), f"splits {list(splits)} of {root}")
+    return result
+
+
+# --------------------------------------------------------------------------------------------
+# write_dataset
+# --------------------------------------------------------------------------------------------
+
+
+def _clip_problems(clip: object, seen: set[str], skeleton: Skeleton | None, dims: dict[str, int]) -> list[Problem]:
+    """Every reason ``clip`` cannot be written; ``dims`` pins J / feature dim across clips."""
+    if not isinstance(clip, Clip):
+        return [Problem(repr(clip)[:80], f"not a Clip: {type(clip).__name__}")]
+    where = f"clip {clip.clip_id!r}"
+    reasons = [clip_id_problem(clip.clip_id)]
+    if isinstance(clip.clip_id, str) and clip.clip_id in seen:
+        reasons.append("duplicate clip id")
+    reasons.append(_captions_problem(clip.captions))
+    reasons.append(_action_problem(clip.action))
+    if clip.joints is None and clip.features is None:
+        reasons.append("neither joints nor features")
+    for kind, arr in (("joints", clip.joints), ("features", clip.features)):
+        if arr is not None:
+            reasons.append(_write_array_problem(kind, arr, skeleton, dims))
+    return [Problem(where, reason) for reason in reasons if reason]
+
+
+def _captions_problem(captions: object) -> str | None:
+    """Why a clip's caption list cannot be written, or None."""
+    if not isinstance(captions, list | tuple) or not captions:
+        return "no captions"
+    if not all(isinstance(c, Caption) for c in captions):
+        return "captions must be Caption objects"
+    return None
+
+
+def _action_problem(action: object) -> str | None:
+    """Why an action label cannot be written to actions.txt, or None."""
+    if action is None:
+        return None
+    if not isinstance(action, str) or not action.strip() or action != action.strip() or "\n" in action:
+        return f"invalid action label {action!r}"
+    return None
+
+
+def _write_array_problem(kind: str, arr: object, skeleton: Skeleton | None, dims: dict[str, int]) -> str | None:
+    """Why a joints/features array cannot be written, or None; records the first J / dim seen."""
+    if not isinstance(arr, np.ndarray):
+        return f"{kind} must be a numpy array, got {type(arr).__name__}"
+    reason = _array_problem(arr, skeleton, kind)
+    if reason is None and arr.dtype != np.float32:
+        reason = _array_problem(_to_float32(arr), skeleton, kind)
+    if reason is None and skeleton is None:
+        joints = arr.shape[1] if kind == "joints" else (arr.shape[1] + 1) // 12
+        first = dims.setdefault("J", joints)
+        if joints != first:
+            reason = f"wrong shape {arr.shape}: {joints} joints, other clips have {first}"
+    return f"{kind}: {reason}" if reason else None
+
+
+def _split_problems(splits: Mapping[str, Sequence[str]], written: set[str]) -> list[Problem]:
+    """Ids in the splits that are not written clips, and ids repeated within a split."""
+    problems = []
+    for split, ids in splits.items():
+        counts: dict[str, int] = {}
+        for clip_id in ids:
+            counts[clip_id] = counts.get(clip_id, 0) + 1
+        for clip_id, count in counts.items():
+            if clip_id not in written:
+                problems.append(Problem(f"{split}.txt", f"id {clip_id!r} is not among the clips"))
+            if count > 1:
+                problems.append(Problem(f"{split}.txt", f"id {clip_id!r} listed {count} times"))
+    return problems
+
+
+def _write_clip(tmp: Path, clip: Clip) -> None:
+    """Write one validated clip's motion files and caption file under ``tmp``."""
+    for sub, arr in ((JOINTS_DIR, clip.joints), (FEATURES_DIR, clip.features)):
+        if arr is not None:
+            with open(tmp / sub / f"{clip.clip_id}.npy", "wb") as f:
+                np.lib.format.write_array(f, np.ascontiguousarray(arr, dtype=np.float32), allow_pickle=False)
+    text = "".join(caption.to_line() + "\n" for caption in clip.captions)
+    (tmp / TEXTS_DIR / f"{clip.clip_id}.txt").write_text(text, encoding="utf-8")
+
+
+def _write_lines(path: Path, lines: Iterable[str]) -> None:
+    """Write ``lines`` one per line, UTF-8, '\\n' endings."""
+    path.write_text("".join(f"{line}\n" for line in lines), encoding="utf-8")
+
+
+def _write_into(
+    tmp: Path, clips: Iterable[Clip], splits: Mapping[str, Sequence[str]], skeleton: Skeleton | None
+) -> None:
+    """Validate and write everything into ``tmp``; raises DatasetError listing every problem."""
+    for sub in (JOINTS_DIR, FEATURES_DIR, TEXTS_DIR):
+        (tmp / sub).mkdir()
+    problems: list[Problem] = []
+    written: set[str] = set()
+    actions: dict[str, str] = {}
+    dims: dict[str, int] = {}
+    for clip in clips:
+        clip_problems = _clip_problems(clip, written, skeleton, dims)
+        if isinstance(clip, Clip) and isinstance(clip.clip_id, str):
+            written.add(clip.clip_id)
+        if clip_problems:
+            problems += clip_problems
+        elif not problems:  # once anything is wrong, only validate the rest
+            _write_clip(tmp, clip)
+            if clip.action is not None:
+                actions[clip.clip_id] = clip.action
+    problems += _split_problems(splits, written)
+    if problems:
+        raise DatasetError(problems, "write_dataset input")
+    for split, ids in splits.items():
+        _write_lines(tmp / f"{split}.txt", ids)
+    if actions:
+        _write_lines(tmp / ACTIONS_FILE, (f"{k},{v}" for k, v in actions.items()))
+
+
+def _replace_dir(tmp: Path, root: Path) -> None:
+    """Move ``tmp`` to ``root``; an existing ``root`` is set aside and deleted only after success.
+
+    POSIX cannot swap two directories atomically: between the two renames ``root`` is briefly
+    absent, but it is never partially written.
+    """
+    if not root.exists():
+        os.rename(tmp, root)
+        return
+    old = root.parent / f".{root.name}.old-{uuid.uuid4().hex[:12]}"
+    os.rename(root, old)
+    try:
+        os.rename(tmp, root)
+    except BaseException:
+        os.rename(old, root)
+        raise
+    shutil.rmtree(old, ignore_errors=True)
+    if old.exists():
+        warnings.warn(f"could not remove the previous dataset at {old}", stacklevel=3)
+
+
+def write_dataset(
+    root: Path,
+    clips: Iterable[Clip],
+    splits: Mapping[str, Sequence[str]],
+    *,
+    skeleton: Skeleton | None = None,
+) -> None:
+    """Write a HumanML3D-layout dataset atomically.
+
+    Everything is written into a temporary directory beside ``root`` (``.<name>.tmp-*``), which
+    is renamed to ``root`` only once every clip and split is valid and written; an existing
+    ``root`` is replaced only then. On any failure the temporary directory is removed and an
+    existing ``root`` is untouched.
+
+    Args:
+        root: dataset directory to create or replace.
+        clips: clips to write (may be a generator; consumed once).
+        splits: split name -> ids, written to ``<split>.txt`` in the given order.
+        skeleton: if given, arrays must match its joint count / feature dim exactly; otherwise
+            they must agree with each other.
+
+    Raises:
+        ValueError: invalid split name.
+        NotADirectoryError: ``root`` exists and is not a directory.
+        DatasetError: bad ids (invalid, duplicate, unknown in a split), empty captions,
+            non-finite or mis-shaped arrays, invalid action labels -- all of them listed.
+    """
+    root = Path(root)
+    for split in splits:
+        _check_split_name(split)
+    if root.exists() and not root.is_dir():
+        raise NotADirectoryError(f"{root} exists and is not a directory")
+    root.parent.mkdir(parents=True, exist_ok=True)
+    tmp = root.parent / f".{root.name}.tmp-{uuid.uuid4().hex[:12]}"
+    tmp.mkdir()
+    try:
+        _write_into(tmp, clips, splits, skeleton)
+        _replace_dir(tmp, root)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
