@@ -8,8 +8,8 @@ global joint positions of shape (T, J, 3) in the skeleton's units; results are i
   horizontal speed v_t = |Δxz| * fps, v̄ = 5-frame box filter of v (zero padded); frame t skates
   when, for either foot, the toe is below 5 cm at t and t+1 and both v_t and v̄_t exceed 0.5 m/s.
   The ratio divides by the T-1 frame pairs.
-- Ground penetration: per frame, how far the lowest joint lies below the floor beyond a
-  tolerance (0 otherwise); averaged over frames.
+- Ground penetration: per frame, the depth of the lowest joint below the floor when it lies
+  deeper than the tolerance (0 otherwise); averaged over frames.
 - Floating: per frame, how far the lowest joint lies above the floor beyond the tolerance
   (0 otherwise); averaged over frames. Tolerance 5 mm, as in the public PhysDiff re-implementation.
 """
@@ -52,7 +52,7 @@ def foot_skating_ratio(joints: np.ndarray, skeleton: Skeleton) -> float:
 
 
 def ground_penetration(joints: np.ndarray, skeleton: Skeleton, tol: float = FLOOR_TOLERANCE_M) -> float:
-    """Mean over frames of max(0, -min_j y - tol), in metres."""
+    """Mean over frames of the lowest joint's depth -min_j y when deeper than ``tol``, else 0, in metres."""
     lowest = _metres(joints, skeleton)[..., 1].min(axis=1)
     return float(np.where(lowest < -tol, -lowest, 0.0).mean())
 
