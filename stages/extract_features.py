@@ -1,0 +1,227 @@
+"""Stage ``extract_features``: a HumanML3D-layout dataset -> the feature store.
+
+``python -m stages.extract_features [key=value ...]`` reads ``data.root`` (all three splits),
+computes HumanML3D features from global joints in parallel processes (or validates precomputed
+``new_joint_vecs``), the grouped Mean/Std over the train split, and the frozen text encoder's
+embeddings of every caption; then writes atomically to ``features.out``::
+
+    train.parquet  val.parquet  test.parquet   one row per motion item (data/store.py)
+    mean.npy  std.npy                          (D,) float32, grouped as HumanML3D does
+    meta.json                                  dataset, dims, counts, encoder, config hash
+    skipped.json                               only with data.on_error=skip: what and why
+
+With ``data.on_error=fail`` (default) any bad input makes the stage list every problem and exit
+non-zero, writing nothing.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import sys
+import time
+from collections.abc import Sequence
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import asdict
+from multiprocessing import get_context
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from tqdm import tqdm
+
+from data.atomic import atomic_directory
+from data.features import features_from_joints, grouped_mean_std
+from data.humanml3d import DatasetError, Problem, SplitData, read_split
+from data.skeleton import Skeleton, get_skeleton
+from data.store import StoredItem, write_split
+from data.text_encoders import TextEncoder, build_text_encoder
+from pipelines.config import REPO_ROOT, load_params
+
+SPLITS = ("train", "val", "test")
+FEATURE_VERSION = 1  # bump when the feature computation changes
+ENCODE_CHUNK = 1024  # captions per encoder call: bounds the (N, L, H) token array in memory
+
+
+def read_dataset(root: Path, skeleton: Skeleton, data_cfg: dict[str, Any]) -> dict[str, SplitData]:
+    """Read every split; in ``fail`` mode collect the problems of all splits before raising."""
+    splits, problems = {}, []
+    for split in SPLITS:
+        try:
+            splits[split] = read_split(
+                root, split, skeleton, source=data_cfg["source"], on_error=data_cfg["on_error"],
+                max_frames=data_cfg["max_frames"],
+            )
+        except DatasetError as err:
+            problems.extend(err.problems)
+    if problems:
+        raise DatasetError(problems)
+    return splits
+
+
+def _features_job(job: tuple[str, np.ndarray, Skeleton]) -> tuple[str, np.ndarray | None, str | None]:
+    clip_id, joints, skeleton = job
+    try:
+        return clip_id, features_from_joints(joints, skeleton), None
+    except ValueError as err:
+        return clip_id, None, str(err)
+
+
+def compute_clip_features(
+    jobs: Sequence[tuple[str, np.ndarray, Skeleton]], workers: int, progress: bool = True
+) -> list[tuple[str, np.ndarray | None, str | None]]:
+    """Run :func:`features_from_joints` over (clip_id, joints, skeleton) jobs on ``workers`` processes.
+
+    Returns (clip_id, features or None, error or None) in job order; the result does not depend
+    on ``workers``.
+    """
+    bar = tqdm(total=len(jobs), desc="features", unit="clip", disable=not progress)
+    results = []
+    if workers <= 1:
+        for job in jobs:
+            results.append(_features_job(job))
+            bar.update()
+    else:
+        chunk = max(1, len(jobs) // (workers * 8))
+        with ProcessPoolExecutor(max_workers=workers, mp_context=get_context("fork")) as pool:
+            for result in pool.map(_features_job, jobs, chunksize=chunk):
+                results.append(result)
+                bar.update()
+    bar.close()
+    return results
+
+
+def clip_features(
+    splits: dict[str, SplitData], root: Path, skeleton: Skeleton, workers: int, on_error: str
+) -> tuple[dict[str, np.ndarray], list[Problem]]:
+    """Features of every clip of every split; failures become Problems naming the clip's file."""
+    feats, jobs = {}, []
+    for data in splits.values():
+        for clip_id, clip in data.clips.items():
+            if clip.joints is not None:
+                jobs.append((clip_id, clip.joints, skeleton))
+            else:
+                feats[clip_id] = clip.features
+    problems = []
+    for clip_id, features, error in compute_clip_features(jobs, workers):
+        if error is None:
+            feats[clip_id] = features
+        else:
+            problems.append(Problem(str(root / "new_joints" / f"{clip_id}.npy"), f"feature extraction failed: {error}"))
+    if problems and on_error == "fail":
+        raise DatasetError(problems)
+    return feats, problems
+
+
+def encode_captions(splits: dict[str, SplitData], encoder: TextEncoder, batch_size: int) -> dict[str, tuple]:
+    """Encode each distinct caption once: text -> (pooled (E,), token embeddings (n, H) float16)."""
+    texts = sorted({c.text for data in splits.values() for item in data.items for c in item.captions})
+    result = {}
+    for first in tqdm(range(0, len(texts), ENCODE_CHUNK), desc="text", unit="chunk", disable=not texts):
+        chunk = texts[first : first + ENCODE_CHUNK]
+        enc = encoder.encode(chunk, batch_size=batch_size)
+        for k, text in enumerate(chunk):
+            result[text] = (enc.pooled[k], enc.tokens[k][enc.mask[k]].astype(np.float16))
+    return result
+
+
+def build_items(data: SplitData, feats: dict[str, np.ndarray], text: dict[str, tuple]) -> list[StoredItem]:
+    """Store rows for one split: each item's feature span and its captions' embeddings."""
+    rows = []
+    for item in data.items:
+        if item.clip_id not in feats:  # its clip failed feature extraction (reported, skip mode)
+            continue
+        captions = [c.text for c in item.captions]
+        rows.append(StoredItem(
+            item_id=item.item_id,
+            clip_id=item.clip_id,
+            action=item.action,
+            start=item.start,
+            features=feats[item.clip_id][item.start : item.end],
+            captions=captions,
+            tokens=[[f"{w}/{p}" for w, p in c.tokens] for c in item.captions],
+            text_pooled=np.stack([text[c][0] for c in captions]).astype(np.float32),
+            text_tokens=[text[c][1] for c in captions],
+        ))
+    return rows
+
+
+def config_hash(params: dict[str, Any]) -> str:
+    """Hash of everything that determines the store's content."""
+    relevant = {"data": params["data"], "features": params["features"], "version": FEATURE_VERSION}
+    return hashlib.sha256(json.dumps(relevant, sort_keys=True).encode()).hexdigest()[:16]
+
+
+def _problem_dicts(problems: Sequence[Problem]) -> list[dict[str, str]]:
+    return [asdict(p) for p in problems]
+
+
+def run(params: dict[str, Any]) -> Path:
+    """Extract features as configured; returns the output directory."""
+    data_cfg, feat_cfg = params["data"], params["features"]
+    root = (REPO_ROOT / data_cfg["root"]).resolve()
+    out = (REPO_ROOT / feat_cfg["out"]).resolve()
+    skeleton = get_skeleton(data_cfg["skeleton"])
+    start = time.perf_counter()
+
+    splits = read_dataset(root, skeleton, data_cfg)
+    feats, failed = clip_features(splits, root, skeleton, feat_cfg["workers"], data_cfg["on_error"])
+    train_clips = {item.clip_id for item in splits["train"].items if item.clip_id in feats}
+    if not train_clips:
+        raise DatasetError([Problem(str(root / "train.txt"), "no usable training motion")])
+    mean, std = grouped_mean_std(np.concatenate([feats[c] for c in sorted(train_clips)]), skeleton.joints_num)
+
+    encoder = build_text_encoder(
+        feat_cfg["text_encoder"], path=feat_cfg["text_encoder_path"], max_length=feat_cfg["max_text_tokens"]
+    )
+    text = encode_captions(splits, encoder, feat_cfg["text_batch_size"])
+
+    counts = {}
+    with atomic_directory(out) as tmp:
+        for split, data in splits.items():
+            rows = build_items(data, feats, text)
+            write_split(tmp / f"{split}.parquet", rows, skeleton.feature_dim, encoder.dim, encoder.token_dim)
+            counts[split] = {
+                "clips": len({r.clip_id for r in rows}),
+                "items": len(rows),
+                "captions": sum(len(r.captions) for r in rows),
+                "frames": int(sum(r.length for r in rows)),
+                "filtered": len(data.filtered),
+                "skipped": len(data.skipped),
+            }
+        np.save(tmp / "mean.npy", mean.astype(np.float32))
+        np.save(tmp / "std.npy", std.astype(np.float32))
+        skipped = [p for data in splits.values() for p in data.skipped] + failed
+        if data_cfg["on_error"] == "skip":
+            (tmp / "skipped.json").write_text(json.dumps(_problem_dicts(skipped), indent=1))
+        meta = {
+            "dataset": data_cfg["name"],
+            "root": str(data_cfg["root"]),
+            "skeleton": skeleton.name,
+            "joints_num": skeleton.joints_num,
+            "feature_dim": skeleton.feature_dim,
+            "fps": skeleton.fps,
+            "counts": counts,
+            "skipped": len(skipped),
+            "text_encoder": encoder.describe(),
+            "config_hash": config_hash(params),
+            "feature_version": FEATURE_VERSION,
+        }
+        (tmp / "meta.json").write_text(json.dumps(meta, indent=2))
+    print(f"extract_features: {sum(c['items'] for c in counts.values())} items, "
+          f"{len(text)} distinct captions in {time.perf_counter() - start:.1f} s -> {out}")
+    return out
+
+
+def main(argv: Sequence[str] | None = None) -> None:
+    params = load_params(argv)
+    os.environ.setdefault("TOKENIZERS_PARALLELISM", "false")
+    try:
+        run(params)
+    except DatasetError as err:
+        sys.exit(f"extract_features: bad input, nothing written.\n{err}")
+
+
+if __name__ == "__main__":
+    main()
