@@ -1,0 +1,281 @@
+"""Tests of the training runner (pipelines/runner.py) on a tiny MLP and random data.
+
+Exactness is checked bit for bit (``torch.equal``) against an uninterrupted in-process
+reference run: a 1-worker Ray Train run, a run whose worker raises once at a step, and a
+run whose driver process is SIGKILLed and started again all reach the same weights.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import os
+import signal
+import subprocess
+import sys
+import textwrap
+import time
+from pathlib import Path
+from typing import Any
+
+import psutil
+import pytest
+import ray.cloudpickle
+import torch
+from torch import nn
+from torch.utils.data import TensorDataset
+
+from pipelines.checkpoint import STATE_FILE, load_final_model, rng_file
+from pipelines.runner import (
+    Components,
+    RayOptions,
+    RunResult,
+    StepContext,
+    TrainSpec,
+    decide_use_gpu,
+    make_run_name,
+    run_training,
+)
+from pipelines.schedules import EMA, CosineWarmup
+
+# Ray workers cannot import this test module (pytest puts tests/ on sys.path only here):
+# ship its functions by value.
+ray.cloudpickle.register_pickle_by_value(sys.modules[__name__])
+
+TESTS_DIR = Path(__file__).resolve().parent
+REPO = TESTS_DIR.parent
+STAGE = "toy"
+
+# --------------------------------------------------------------------------- the toy spec
+
+
+def build(cfg: dict) -> Components:
+    """Tiny MLP with dropout (uses the RNG), AdamW and an EMA."""
+    hidden = cfg.get("hidden", 32)
+    net = nn.Sequential(nn.Linear(8, hidden), nn.ReLU(), nn.Dropout(0.1), nn.Linear(hidden, 1))
+    return Components({"net": net}, {"net": torch.optim.AdamW(net.parameters(), lr=cfg["lr"])}, ema={"net": 0.9})
+
+
+def dataset(cfg: dict) -> TensorDataset:
+    """256 random regression pairs (fixed by their own generator)."""
+    x = torch.randn(256, 8, generator=torch.Generator().manual_seed(123))
+    return TensorDataset(x, x.sum(1, keepdim=True))
+
+
+def _test_hooks(ctx: StepContext) -> None:
+    """Test-only behaviour driven by config keys: fail once, record nodes, go slowly."""
+    cfg = ctx.config
+    marker = cfg.get("fail_marker")
+    if marker and ctx.step == cfg["fail_at_step"] and not os.path.exists(marker):
+        Path(marker).touch()
+        raise RuntimeError(f"injected failure at step {ctx.step}")
+    if cfg.get("nodes_dir") and ctx.step == 0:
+        node = ray.get_runtime_context().get_node_id()
+        Path(cfg["nodes_dir"], f"rank{ctx.rank}.txt").write_text(node)
+    if cfg.get("step_sleep"):
+        time.sleep(cfg["step_sleep"])
+
+
+def step(batch: Any, ctx: StepContext) -> dict[str, torch.Tensor]:
+    """MSE on noisy inputs (noise from the per-rank torch RNG)."""
+    _test_hooks(ctx)
+    x, y = batch
+    x = x + 0.01 * torch.randn_like(x)
+    loss = nn.functional.mse_loss(ctx.models["net"](x), y)
+    ctx.update(loss)
+    return {"loss": loss}
+
+
+SPEC = TrainSpec(build=build, dataset=dataset, step=step)
+BASE = {"seed": 3, "batch_size": 16, "max_steps": 40, "lr": 1e-2, "grad_clip": 1.0,
+        "warmup_steps": 5, "log_every": 10}  # 16 batches per epoch: checkpoints fall mid-epoch
+RAY1 = {"num_workers": 1, "checkpoint_every": 10, "max_failures": 2}
+
+
+def weights(out_dir: Path) -> dict[str, torch.Tensor]:
+    """All final tensors (model and EMA) of a run's out dir, flattened by name."""
+    payload = load_final_model(out_dir)
+    flat = {f"models.{m}.{k}": v for m, sd in payload["models"].items() for k, v in sd.items()}
+    flat.update({f"ema.{m}.{k}": v for m, sd in payload["ema"].items() for k, v in sd.items()})
+    return flat
+
+
+def assert_bit_identical(a: Path, b: Path) -> None:
+    """Both out dirs hold exactly the same tensors."""
+    wa, wb = weights(a), weights(b)
+    assert wa.keys() == wb.keys()
+    different = [k for k in wa if not torch.equal(wa[k], wb[k])]
+    assert not different, f"tensors differ: {different}"
+
+
+@pytest.fixture(scope="module")
+def reference(tmp_path_factory: pytest.TempPathFactory) -> RunResult:
+    """Uninterrupted in-process run of BASE (the exactness reference)."""
+    root = tmp_path_factory.mktemp("reference")
+    return run_training(STAGE, SPEC, BASE, {"num_workers": 0, "checkpoint_every": 10},
+                        root / "out", str(root / "storage"))
+
+
+# --------------------------------------------------------------------------- in-process
+
+
+def test_in_process_run_is_deterministic(reference: RunResult, tmp_path: Path) -> None:
+    """Two in-process runs give identical weights, whatever the checkpoint interval."""
+    again = run_training(STAGE, SPEC, BASE, {"local": True, "checkpoint_every": 7},
+                         tmp_path / "out", str(tmp_path / "storage"))
+    assert again.run_name == reference.run_name
+    assert_bit_identical(reference.out_dir, again.out_dir)
+
+
+def test_outputs(reference: RunResult) -> None:
+    """metrics.json keys, one CSV row per logged step, a PNG, a loadable final model."""
+    out = reference.out_dir
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert {"loss", "grad_norm/net", "step", "epoch", "steps_per_s", "wall_time_s", "attempts"} <= metrics.keys()
+    assert metrics["step"] == BASE["max_steps"] and metrics["attempts"] == 1
+    with open(out / "loss.csv") as fh:
+        rows = list(csv.DictReader(fh))
+    assert [int(r["step"]) for r in rows] == [10, 20, 30, 40] == [h["step"] for h in reference.history]
+    assert float(rows[-1]["loss"]) == pytest.approx(metrics["loss"])
+    png = (out / "loss.png").read_bytes()
+    assert png.startswith(b"\x89PNG") and len(png) > 1000
+    payload = load_final_model(out)
+    model = build(payload["config"]).models["net"]
+    model.load_state_dict(payload["models"]["net"])
+    assert model.eval()(torch.zeros(2, 8)).shape == (2, 1)
+    assert payload["step"] == BASE["max_steps"] and json.loads((out / "run.json").read_text())["attempts"] == [0]
+    assert not list(out.parent.glob(".out.*")), "temporary folders left behind"
+
+
+def test_changed_params_give_a_fresh_run_name() -> None:
+    """Same params -> same name (resume); changed params or world size -> new name."""
+    name = make_run_name(STAGE, BASE, 1)
+    assert name == make_run_name(STAGE, dict(reversed(BASE.items())), 1)
+    assert name != make_run_name(STAGE, {**BASE, "lr": 2e-2}, 1)
+    assert name != make_run_name(STAGE, BASE, 2)
+    assert name.startswith(f"{STAGE}-")
+
+
+def test_gpu_decision_never_hangs() -> None:
+    """auto -> GPUs only if there is one per worker; an impossible True raises."""
+    assert decide_use_gpu("auto", 1, {"CPU": 2}) is False
+    assert decide_use_gpu("auto", 2, {"CPU": 2, "GPU": 2}) is True
+    assert decide_use_gpu(False, 1, {"GPU": 1}) is False
+    with pytest.raises(ValueError, match="wait forever"):
+        decide_use_gpu(True, 2, {"GPU": 1})
+    with pytest.raises(ValueError, match="unknown ray option"):
+        RayOptions.from_dict({"num_worker": 1})
+
+
+def test_cosine_warmup_and_ema() -> None:
+    """Linear warm-up to the base LR, cosine down to min_ratio; EMA moves by 1 - decay."""
+    sched = CosineWarmup(warmup_steps=4, total_steps=14, min_ratio=0.1)
+    assert [sched(i) for i in range(4)] == [0.25, 0.5, 0.75, 1.0]
+    assert sched(9) == pytest.approx(0.55) and sched(14) == pytest.approx(0.1) == sched(100)
+    net = nn.Linear(2, 1)
+    ema = EMA(net, decay=0.75)
+    with torch.no_grad():
+        before = ema.module.weight.clone()
+        net.weight.add_(4.0)
+    ema.update(net)
+    assert torch.allclose(ema.module.weight, before + 1.0)
+    assert not ema.module.weight.requires_grad
+
+
+# --------------------------------------------------------------------------- Ray Train
+
+
+def test_ray_one_worker_matches_in_process(ray_cluster: Any, reference: RunResult, tmp_path: Path) -> None:
+    """A 1-worker Ray Train run is bit-identical to the in-process run."""
+    result = run_training(STAGE, SPEC, BASE, RAY1, tmp_path / "out", str(tmp_path / "storage"))
+    assert result.run_name == reference.run_name and result.attempts == [0]
+    assert result.run_path == str(tmp_path / "storage" / result.run_name)
+    assert_bit_identical(reference.out_dir, result.out_dir)
+
+
+def test_exact_resume_after_worker_failure(ray_cluster: Any, reference: RunResult, tmp_path: Path) -> None:
+    """The worker raises once at step 25; Ray restarts from step 20 and ends identical."""
+    cfg = {**BASE, "fail_at_step": 25, "fail_marker": str(tmp_path / "failed.marker")}
+    result = run_training(STAGE, SPEC, cfg, RAY1, tmp_path / "out", str(tmp_path / "storage"))
+    assert (tmp_path / "failed.marker").exists()
+    assert result.attempts == [0, 20]
+    assert_bit_identical(reference.out_dir, result.out_dir)
+
+
+DRIVER = textwrap.dedent("""
+    import json, sys
+    from pathlib import Path
+    sys.path[:0] = [{tests!r}, {repo!r}]
+    import test_runner as t
+    from pipelines.runner import run_training
+    cfg, ray_cfg, out, storage = json.loads(sys.argv[1]), json.loads(sys.argv[2]), sys.argv[3], sys.argv[4]
+    run_training(t.STAGE, t.SPEC, cfg, ray_cfg, Path(out), storage)
+""")
+
+
+def _wait_for_checkpoint(run_dir: Path, proc: subprocess.Popen, timeout: float = 60.0) -> None:
+    """Block until Ray's snapshot in ``run_dir`` lists a checkpoint."""
+    deadline = time.monotonic() + timeout
+    snapshot = run_dir / "checkpoint_manager_snapshot.json"
+    while time.monotonic() < deadline:
+        assert proc.poll() is None, f"driver exited early with {proc.returncode}"
+        try:
+            if json.loads(snapshot.read_text())["checkpoint_results"]:
+                return
+        except (FileNotFoundError, json.JSONDecodeError, KeyError):
+            pass
+        time.sleep(0.05)
+    raise TimeoutError(f"no checkpoint in {run_dir} after {timeout} s")
+
+
+def _wait_for_free_cpus(total: float, timeout: float = 30.0) -> None:
+    """Block until the killed driver's workers have released their CPUs."""
+    import ray
+
+    deadline = time.monotonic() + timeout
+    while ray.available_resources().get("CPU", 0) < total and time.monotonic() < deadline:
+        time.sleep(0.1)
+
+
+def test_exact_resume_after_driver_sigkill(ray_cluster: Any, reference: RunResult, tmp_path: Path) -> None:
+    """SIGKILL the driver after the first checkpoint; starting it again resumes exactly."""
+    import ray
+
+    storage, out = tmp_path / "storage", tmp_path / "out"
+    cfg = {**BASE, "step_sleep": 0.05}
+    ray_cfg = {**RAY1, "address": ray_cluster.address}
+    script = tmp_path / "driver.py"
+    script.write_text(DRIVER.format(tests=str(TESTS_DIR), repo=str(REPO)))
+    proc = subprocess.Popen([sys.executable, str(script), json.dumps(cfg), json.dumps(ray_cfg), str(out),
+                             str(storage)], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        _wait_for_checkpoint(storage / make_run_name(STAGE, cfg, 1), proc)
+        children = psutil.Process(proc.pid).children(recursive=True)
+        proc.send_signal(signal.SIGKILL)
+        proc.wait(timeout=10)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    for child in children:  # orphans of the killed driver, by pid
+        if child.is_running():
+            child.kill()
+    assert not out.exists(), "a killed stage must not leave an out dir"
+    _wait_for_free_cpus(ray.cluster_resources()["CPU"])
+
+    result = run_training(STAGE, SPEC, cfg, RAY1, out, str(storage))
+    assert result.attempts[0] == 0 and result.attempts[-1] > 0, result.attempts
+    assert_bit_identical(reference.out_dir, result.out_dir)
+
+
+def test_two_node_cluster_run(ray_cluster: Any, tmp_path: Path) -> None:
+    """Two workers SPREAD over the two simulated nodes train, checkpoint and export."""
+    nodes_dir = tmp_path / "nodes"
+    nodes_dir.mkdir()
+    cfg = {**BASE, "max_steps": 20, "nodes_dir": str(nodes_dir)}
+    ray_cfg = {"num_workers": 2, "checkpoint_every": 10, "placement_strategy": "SPREAD"}
+    result = run_training(STAGE, SPEC, cfg, ray_cfg, tmp_path / "out", str(tmp_path / "storage"))
+    node_ids = {p.read_text() for p in nodes_dir.iterdir()}
+    assert len(node_ids) == 2, "workers did not land on two nodes"
+    assert result.metrics["step"] == 20 and (tmp_path / "out" / "model.pt").exists()
+    latest = sorted(p for p in Path(result.run_path).glob("checkpoint_*") if p.is_dir())[-1]
+    assert {STATE_FILE, rng_file(0), rng_file(1)} <= {p.name for p in latest.iterdir()}
