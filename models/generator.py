@@ -1,0 +1,64 @@
+"""The one sampling interface every motion generator implements (DESIGN.md, "Models").
+
+``evaluate`` and the user CLI only ever talk to a :class:`Generator`: texts (with their frozen
+text-encoder embeddings) and lengths in, dataset-normalised features out.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Protocol, runtime_checkable
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class TextBatch:
+    """B prompts and their frozen text-encoder embeddings.
+
+    Attributes:
+        texts: the B captions.
+        pooled: (B, E) float32 sentence embeddings (L2-normalised).
+        tokens: B arrays (n_b, H) of token embeddings (real tokens only).
+    """
+
+    texts: list[str]
+    pooled: np.ndarray
+    tokens: list[np.ndarray]
+
+    def __post_init__(self) -> None:
+        if self.pooled.ndim != 2 or len(self.pooled) != len(self.texts) or len(self.tokens) != len(self.texts):
+            raise ValueError(f"TextBatch: {len(self.texts)} texts, pooled {self.pooled.shape}, "
+                             f"{len(self.tokens)} token arrays")
+
+    def __len__(self) -> int:
+        return len(self.texts)
+
+    def select(self, index: np.ndarray | list[int]) -> TextBatch:
+        """The sub-batch at ``index`` (in that order)."""
+        index = list(index)
+        return TextBatch([self.texts[i] for i in index], self.pooled[index], [self.tokens[i] for i in index])
+
+
+@runtime_checkable
+class Generator(Protocol):
+    """A text-to-motion generator as seen by ``evaluate`` and ``stages.generate``.
+
+    Attributes:
+        name: row name in the metrics table (e.g. ``"MLD-DDIM50"``).
+        nfe: network evaluations per sample (0 for non-neural baselines).
+        stochastic: whether two samples for the same text differ (MultiModality applies).
+    """
+
+    name: str
+    nfe: int
+    stochastic: bool
+
+    def sample(self, text: TextBatch, lengths: np.ndarray, seed: int) -> np.ndarray:
+        """Motions for ``text`` with ``lengths`` (B,) frames.
+
+        Returns:
+            (B, max(lengths), D) float32 features normalised with the dataset's Mean/Std;
+            frames at or past ``lengths[b]`` are zero. The same ``seed`` gives the same output.
+        """
+        ...

@@ -1,0 +1,129 @@
+"""Evaluation protocol and baselines, with a stub evaluator whose embeddings are known exactly.
+
+Each item's motion is constant over time and carries a random code in its RIC dims; its caption
+is the token ``c<k>``; the stub embeds a caption as its code and a motion as its first frame's
+code. So Real and a perfect Retrieval must reach R-precision 1, Random must sit at chance.
+"""
+
+import numpy as np
+import pytest
+
+from data.skeleton import HUMANML3D
+from data.store import StoredItem
+from models.generator import Generator, TextBatch
+from pipelines.evaluation import EvalConfig, aggregate, crop_lengths, draw, evaluate
+from pipelines.generators import RandomMotion, Retrieval, pad_motions
+
+D, E, CODE = HUMANML3D.feature_dim, 8, slice(4, 12)
+
+
+def _items(codes: np.ndarray, rng: np.random.Generator, prefix: str) -> list[StoredItem]:
+    items = []
+    for k, code in enumerate(codes):
+        length = int(rng.integers(40, 120))
+        features = np.zeros((length, D), np.float32)
+        features[:, 3] = 0.9  # root height: a standing body
+        features[:, CODE] = code
+        pooled = (code / np.linalg.norm(code)).astype(np.float32)[None]
+        items.append(StoredItem(f"{prefix}{k}", f"{prefix}{k}", None, 0, features, [f"c{k}"], [[f"c{k}/NOUN"]],
+                                pooled, [np.zeros((3, 4), np.float16)]))
+    return items
+
+
+class StubEmbedder:
+    def __init__(self, codes: np.ndarray) -> None:
+        self.codes = codes
+
+    def texts(self, tokens):
+        return np.stack([self.codes[int(t[0].split("/")[0][1:])] for t in tokens])
+
+    def motions(self, raw, lengths):
+        return raw[:, 0, CODE].astype(np.float64)
+
+
+@pytest.fixture(scope="module")
+def world():
+    rng = np.random.default_rng(0)
+    codes = rng.standard_normal((96, E)) * 3
+    test = _items(codes, np.random.default_rng(1), "t")
+    train = _items(codes, np.random.default_rng(1), "r")  # every test item has an identical training twin
+    return codes, test, train
+
+
+CFG = EvalConfig(replications=3, diversity_times=50, mm_texts=10, mm_repeats=12, mm_times=10, timing_sentences=3)
+
+
+def test_real_and_perfect_retrieval_reach_one_random_sits_at_chance(world):
+    codes, test, train = world
+    mean, std = np.zeros(D, np.float32), np.ones(D, np.float32)
+    gens = [RandomMotion(train, mean, std), Retrieval(train, mean, std)]
+    assert all(isinstance(g, Generator) for g in gens)
+    table = evaluate(gens, test, mean, std, StubEmbedder(codes), HUMANML3D, CFG)
+    assert table["Real"]["R_precision_top1"] == 1.0 and table["Real"]["MM_Dist"] == pytest.approx(0.0, abs=1e-5)
+    assert table["Retrieval"]["R_precision_top3"] == 1.0
+    assert table["Retrieval"]["FID"] == pytest.approx(table["Real"]["FID"], abs=1e-6)
+    assert abs(table["Random"]["R_precision_top3"] - 3 / 32) < 0.1
+    assert table["Random"]["FID"] > 1.0
+    assert table["Random"]["MultiModality"] > 1.0  # random motions differ
+    # metrics that do not apply are absent, never faked
+    assert "MultiModality" not in table["Real"] and "MultiModality" not in table["Retrieval"]
+    assert "AITS_s" not in table["Real"] and table["Retrieval"]["AITS_s"] > 0
+    assert table["Real"]["R_precision_top1_ci"] == 0.0
+    assert table["Real"]["penetration_mm"] >= 0.0
+
+
+def test_crop_lengths_follow_the_reference_rounding():
+    rng = np.random.default_rng(1)
+    lengths = np.full(30000, 103)
+    crops = crop_lengths(lengths, rng)
+    assert set(np.unique(crops)) == {96, 100}
+    assert np.mean(crops == 100) == pytest.approx(2 / 3, abs=0.01)
+
+
+def test_draw_crops_real_windows_of_the_chosen_items(world):
+    _, test, _ = world
+    d = draw(test, np.random.default_rng(2), 4)
+    for b, length in enumerate(d.lengths):
+        k = int(d.text.texts[b][1:])
+        assert length % 4 == 0 and length <= test[k].length
+        np.testing.assert_array_equal(d.real[b, :length], test[k].features[:length])  # constant frames
+        assert not d.real[b, length:].any()
+
+
+def test_retrieval_answers_with_the_nearest_caption_motion(world):
+    codes, _, train = world
+    gen = Retrieval(train, np.zeros(D, np.float32), np.ones(D, np.float32))
+    query = TextBatch(["x", "y"], np.stack([train[5].text_pooled[0], train[9].text_pooled[0]]), [None, None])
+    out = gen.sample(query, np.array([40, 32]), seed=0)
+    np.testing.assert_allclose(out[0, :40, CODE], np.broadcast_to(codes[5], (40, E)), rtol=1e-6)
+    np.testing.assert_allclose(out[1, :32, CODE], np.broadcast_to(codes[9], (32, E)), rtol=1e-6)
+    assert not out[1, 32:].any()
+
+
+def test_random_motion_is_seeded_and_respects_lengths(world):
+    _, _, train = world
+    gen = RandomMotion(train, np.zeros(D, np.float32), np.ones(D, np.float32))
+    text = TextBatch(["a"] * 4, np.zeros((4, E), np.float32), [None] * 4)
+    a, b = gen.sample(text, np.array([40, 44, 48, 52]), 7), gen.sample(text, np.array([40, 44, 48, 52]), 7)
+    np.testing.assert_array_equal(a, b)
+    assert not np.array_equal(a, gen.sample(text, np.array([40, 44, 48, 52]), 8))
+    with pytest.raises(ValueError, match="no training motion"):
+        gen.sample(text.select([0]), np.array([500]), 0)
+
+
+def test_aggregate_gives_mean_and_ci():
+    reps = [{"Real": {"FID": 1.0}}, {"Real": {"FID": 3.0}}]
+    table = aggregate(reps)
+    assert table["Real"]["FID"] == 2.0
+    assert table["Real"]["FID_ci"] == pytest.approx(1.96 * 1.0 / np.sqrt(2))
+
+
+def test_pad_motions_zero_fills():
+    out = pad_motions([np.ones((3, 2)), np.ones((5, 2))], np.array([3, 5]))
+    assert out.shape == (2, 5, 2) and out[0, 3:].sum() == 0 and out.sum() == 16
+
+
+def test_too_few_test_items_is_a_clear_error(world):
+    codes, test, train = world
+    with pytest.raises(ValueError, match="fewer than one R-precision group"):
+        evaluate([], test[:10], np.zeros(D), np.ones(D), StubEmbedder(codes), HUMANML3D, CFG)
