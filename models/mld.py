@@ -1,0 +1,348 @@
+"""MLD's latent-diffusion denoiser, its training loss and its sampler (pure torch).
+
+Reference: ``reference/motionlcm_mld.md`` section 3 (``MldDenoiser``, ``arch: trans_enc``); DESIGN.md
+"Models -> MLD denoiser"; issue 5 item 3. Shapes: B batch, L latent tokens, C latent channels, h
+transformer width, E text-embedding dims (384 for MiniLM; 768 for MLD's CLIP), T frames, D features.
+
+Denoiser (MLD Sec. 3.2): the skip transformer of :mod:`models.transformer` over the token sequence
+``[z_t (L tokens); time token; text token]`` plus a positional encoding, no attention mask; the
+first L outputs are the prediction (epsilon by default). Time token: ``MLP(sinusoid(t))`` with
+``MLP = Linear(F -> h) -> SiLU -> Linear(h -> h)`` (diffusers ``Timesteps(F, flip_sin_to_cos=True,
+freq_shift=0)`` + ``TimestepEmbedding``; MLD's F is 768). Text token: ``Linear(E -> h)`` of the pooled
+frozen text embedding, after a ReLU in MLD / MotionLCM V1 (``text_activation="relu"``) or without one
+in MotionLCM V2 (``"none"``). When h != C the latent goes through ``Linear(C -> h)`` in and
+``Linear(h -> C)`` out (MotionLCM V2); otherwise there are no latent projections (MLD 1 x 256).
+
+MotionLCM hooks: ``time_cond_dim`` adds the LCM guidance-scale embedding, ``Linear(time_cond_dim -> F,
+bias=False)`` zero-initialised and added to the sinusoid before the MLP (so a student loaded from a
+teacher with ``strict=False`` starts identical to it); ``residuals`` in :meth:`MLDDenoiser.forward` and
+the hidden states of :meth:`MLDDenoiser.run` are the ControlNet hook of :class:`SkipTransformer`.
+
+Training (MLD Eq. 3): ``L = E ||eps - eps_theta(z_t, t, c)||^2`` with ``z_t = sqrt(ab_t) z_0 +
+sqrt(1 - ab_t) eps``, t ~ U{0..T-1} on the scaled_linear schedule (0.00085-0.012, T = 1000) and the
+text dropped with probability 0.1 for classifier-free guidance.
+
+Null condition: MLD replaces the caption by "" and encodes it; our text embeddings are precomputed
+in the feature store, so the unconditional input is the denoiser's ``null_text`` buffer (E,), zeros
+by default (a persistent buffer: set it to the encoder's embedding of "" to follow MLD exactly).
+
+Sampling: DDIM (50 steps, eta 0, MLD's ``leading`` grid with ``steps_offset=1`` and
+``set_alpha_to_one=False``) with CFG ``eps = eps_u + w (eps_c - eps_u)``, w = 7.5, from N(0, I), then
+``vae.decode(latent_scale * z)``.
+
+Latent scale: latent diffusion (LDM) trains on ``z / s`` with s ~ the std of the training latents
+(Stable Diffusion's 0.18215 is 1 / s). MLD does *not* rescale (its VAE scale factor is 1.0, the KL
+keeps latents near unit variance), so ``MLDConfig.latent_scale`` defaults to 1.0. Convention here:
+``latent_scale`` is s, the std (:func:`latent_std`); :func:`encode_latents` returns ``z / s`` (the
+diffusion space, which :func:`mld_loss` expects) and :func:`sample_mld` decodes ``s * z``.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator, Mapping, Sequence
+from contextlib import contextmanager
+from dataclasses import dataclass
+from typing import Any, Literal
+
+import torch
+from torch import Tensor, nn
+from torch.nn import functional as F
+
+from models.diffusion import (
+    NoiseSchedule,
+    PredictionType,
+    TimestepSpacing,
+    classifier_free_guidance,
+    ddim_sample,
+    sample_timesteps,
+)
+from models.transformer import (
+    Activation,
+    PositionalEncoding,
+    PositionalEncodingKind,
+    SkipOutput,
+    SkipTransformer,
+    timestep_embedding,
+)
+from models.vae import MotionVAE
+
+TextActivation = Literal["relu", "none"]
+
+
+@dataclass(frozen=True)
+class MLDConfig:
+    """Hyper-parameters of :class:`MLDDenoiser`; defaults are MLD's (with our 384-d MiniLM text).
+
+    ``latent_tokens``/``latent_dim`` must match the VAE's; ``hidden_dim`` None = width ``latent_dim``
+    with no latent projections. ``time_freq_dim`` is the sinusoid size F (MLD 768). ``time_cond_dim``
+    is None for MLD and 256 for a MotionLCM student. ``latent_scale`` s: diffusion runs on ``z / s``
+    (MLD: 1.0).
+    """
+
+    latent_tokens: int = 1
+    latent_dim: int = 256
+    hidden_dim: int | None = None
+    text_dim: int = 384
+    layers: int = 9
+    heads: int = 4
+    ff_dim: int = 1024
+    dropout: float = 0.1
+    activation: Activation = "gelu"
+    norm_first: bool = False
+    pos_encoding: PositionalEncodingKind = "sinusoidal"
+    max_len: int = 512
+    time_freq_dim: int = 768
+    flip_sin_to_cos: bool = True
+    freq_shift: float = 0.0
+    text_activation: TextActivation = "relu"
+    time_cond_dim: int | None = None
+    prediction_type: PredictionType = "epsilon"
+    latent_scale: float = 1.0
+
+    @property
+    def width(self) -> int:
+        """Transformer width h."""
+        return self.latent_dim if self.hidden_dim is None else self.hidden_dim
+
+
+class TimestepEmbedder(nn.Module):
+    """``MLP(sinusoid(t) + cond_proj(w_emb))``: t (B,) [, w_emb (B, P)] -> (B, h) (diffusers ``TimestepEmbedding``).
+
+    ``cond_proj`` exists only with ``cond_dim`` (MotionLCM's w-embedding) and starts at zero.
+    """
+
+    def __init__(
+        self, freq_dim: int, dim: int, cond_dim: int | None = None, *, flip_sin_to_cos: bool = True,
+        freq_shift: float = 0.0,
+    ) -> None:
+        super().__init__()
+        self.freq_dim, self.flip_sin_to_cos, self.freq_shift = freq_dim, flip_sin_to_cos, freq_shift
+        self.cond_proj = nn.Linear(cond_dim, freq_dim, bias=False) if cond_dim is not None else None
+        if self.cond_proj is not None:
+            nn.init.zeros_(self.cond_proj.weight)
+        self.linear_1 = nn.Linear(freq_dim, dim)
+        self.act = nn.SiLU()
+        self.linear_2 = nn.Linear(dim, dim)
+
+    def forward(self, t: Tensor, cond: Tensor | None = None) -> Tensor:
+        emb = timestep_embedding(t, self.freq_dim, flip_sin_to_cos=self.flip_sin_to_cos, freq_shift=self.freq_shift)
+        if cond is not None:
+            if self.cond_proj is None:
+                raise ValueError("time_cond given but the denoiser has no time_cond_dim")
+            emb = emb + self.cond_proj(cond.to(emb.dtype))
+        return self.linear_2(self.act(self.linear_1(emb.to(self.linear_1.weight.dtype))))
+
+
+class MLDDenoiser(nn.Module):
+    """MLD's latent denoiser ``eps_theta(z_t, t, c)``; see the module docstring.
+
+    ``config`` is an :class:`MLDConfig` or its dict.
+    """
+
+    null_text: Tensor
+
+    def __init__(self, config: MLDConfig | Mapping[str, Any] | None = None) -> None:
+        super().__init__()
+        cfg = config if isinstance(config, MLDConfig) else MLDConfig(**dict(config or {}))
+        if cfg.text_activation not in ("relu", "none"):
+            raise ValueError(f"unknown text_activation {cfg.text_activation!r}")
+        self.config = cfg
+        h = cfg.width
+        self.latent_in: nn.Module = nn.Linear(cfg.latent_dim, h) if cfg.hidden_dim is not None else nn.Identity()
+        self.latent_out: nn.Module = nn.Linear(h, cfg.latent_dim) if cfg.hidden_dim is not None else nn.Identity()
+        self.time_embedding = TimestepEmbedder(
+            cfg.time_freq_dim, h, cfg.time_cond_dim, flip_sin_to_cos=cfg.flip_sin_to_cos, freq_shift=cfg.freq_shift
+        )
+        self.text_proj = nn.Sequential(
+            nn.ReLU() if cfg.text_activation == "relu" else nn.Identity(), nn.Linear(cfg.text_dim, h)
+        )
+        self.pos_encoding = PositionalEncoding(h, cfg.pos_encoding, cfg.max_len)
+        self.transformer = SkipTransformer(
+            h, cfg.layers, cfg.heads, cfg.ff_dim, cfg.dropout, cfg.activation, norm_first=cfg.norm_first
+        )
+        self.register_buffer("null_text", torch.zeros(cfg.text_dim))
+
+    def null_text_like(self, text_emb: Tensor) -> Tensor:
+        """The unconditional embedding broadcast to ``text_emb``'s shape (B, E), dtype and device."""
+        return self.null_text.to(text_emb.device, text_emb.dtype).expand_as(text_emb)
+
+    def run(
+        self,
+        z_t: Tensor,
+        t: Tensor | int,
+        text_emb: Tensor,
+        *,
+        time_cond: Tensor | None = None,
+        residuals: Sequence[Tensor | None] | None = None,
+    ) -> SkipOutput:
+        """Like :meth:`forward` but also returns the transformer's per-layer hidden states (B, L + 2, h)."""
+        b, n, _ = z_t.shape
+        t = torch.as_tensor(t, device=z_t.device)
+        t = t.expand(b) if t.ndim == 0 else t
+        tokens = torch.cat(
+            [
+                self.latent_in(z_t),
+                self.time_embedding(t, time_cond)[:, None],
+                self.text_proj(text_emb.to(z_t.dtype))[:, None],
+            ],
+            dim=1,
+        )
+        out, hidden = self.transformer.run(self.pos_encoding(tokens), residuals=residuals)
+        return SkipOutput(self.latent_out(out[:, :n]), hidden)
+
+    def forward(
+        self,
+        z_t: Tensor,
+        t: Tensor | int,
+        text_emb: Tensor,
+        *,
+        time_cond: Tensor | None = None,
+        residuals: Sequence[Tensor | None] | None = None,
+    ) -> Tensor:
+        """Predict epsilon (``prediction_type``) from z_t (B, L, C), t (B,) int, text_emb (B, E) -> (B, L, C).
+
+        ``time_cond`` (B, time_cond_dim): MotionLCM's guidance-scale embedding. ``residuals``: one
+        (B, L + 2, h) tensor or None per transformer layer (ControlNet).
+        """
+        return self.run(z_t, t, text_emb, time_cond=time_cond, residuals=residuals).output
+
+
+# --------------------------------------------------------------------------------------------------
+# Condition dropout and training loss
+# --------------------------------------------------------------------------------------------------
+
+
+def _gen_device(generator: torch.Generator | None, fallback: torch.device) -> torch.device:
+    return generator.device if generator is not None else fallback
+
+
+def drop_text(
+    text_emb: Tensor, p: float, generator: torch.Generator | None = None, null: Tensor | None = None
+) -> Tensor:
+    """Classifier-free-guidance condition dropout: each row of text_emb (B, E) becomes ``null`` w.p. ``p``.
+
+    ``null`` (E,) or (B, E) defaults to zeros (the default ``MLDDenoiser.null_text``). p = 0 returns the
+    input unchanged, p = 1 all null.
+    """
+    null = torch.zeros_like(text_emb) if null is None else null.to(text_emb.device, text_emb.dtype).expand_as(text_emb)
+    if p <= 0:
+        return text_emb
+    drop = torch.rand(text_emb.shape[0], generator=generator, device=_gen_device(generator, text_emb.device))
+    drop = (drop < p).to(text_emb.device)[:, None]
+    return torch.where(drop, null, text_emb)
+
+
+def mld_loss(
+    denoiser: MLDDenoiser,
+    schedule: NoiseSchedule,
+    z0: Tensor,
+    text_emb: Tensor,
+    p_uncond: float = 0.1,
+    generator: torch.Generator | None = None,
+    *,
+    time_cond: Tensor | None = None,
+) -> dict[str, Tensor]:
+    """MLD's diffusion loss on diffusion-space latents z0 (B, L, C) (i.e. ``z / latent_scale``).
+
+    ``t ~ U{0..T-1}``, ``eps ~ N(0, I)``, ``z_t = q_sample(z0, t, eps)``, text dropped to the null
+    embedding w.p. ``p_uncond``; ``mse = mean ||target - net(z_t, t, c)||^2`` with target = eps for
+    epsilon prediction. All randomness comes from ``generator``. Returns ``{"mse", "total"}`` (equal).
+    """
+    dev = _gen_device(generator, z0.device)
+    t = sample_timesteps(z0.shape[0], schedule.num_steps, generator, dev).to(z0.device)
+    noise = torch.randn(z0.shape, generator=generator, device=dev, dtype=z0.dtype).to(z0.device)
+    text = drop_text(text_emb, p_uncond, generator, denoiser.null_text)
+    pred = denoiser(schedule.q_sample(z0, t, noise), t, text, time_cond=time_cond)
+    target = schedule.prediction_target(z0, noise, t, denoiser.config.prediction_type)
+    mse = F.mse_loss(pred, target)
+    return {"mse": mse, "total": mse}
+
+
+# --------------------------------------------------------------------------------------------------
+# Latents and sampling
+# --------------------------------------------------------------------------------------------------
+
+
+@contextmanager
+def _eval_mode(*modules: nn.Module) -> Iterator[None]:
+    """Switch modules to eval for the block and restore their previous train/eval flags."""
+    flags = [m.training for m in modules]
+    try:
+        for m in modules:
+            m.eval()
+        yield
+    finally:
+        for m, flag in zip(modules, flags, strict=True):
+            m.train(flag)
+
+
+@torch.no_grad()
+def encode_latents(
+    vae: MotionVAE,
+    features: Tensor,
+    lengths: Tensor | Sequence[int],
+    latent_scale: float = 1.0,
+    generator: torch.Generator | None = None,
+    *,
+    sample: bool = True,
+) -> Tensor:
+    """Diffusion training latents ``z / latent_scale`` (B, L, C) of normalised features (B, T, D).
+
+    The VAE runs frozen (no grad, eval mode: no dropout) but z is *sampled* from q(z | x) as MLD does
+    (``sample=False`` gives the mean).
+    """
+    with _eval_mode(vae):
+        z, _ = vae.encode(features, lengths, generator, sample=sample)
+    return z / latent_scale
+
+
+def latent_std(latents: Tensor) -> float:
+    """Std over all elements of a set of VAE latents (N, L, C): the LDM-style ``latent_scale`` s."""
+    return float(latents.float().std())
+
+
+@torch.no_grad()
+def sample_mld(
+    denoiser: MLDDenoiser,
+    vae: MotionVAE,
+    schedule: NoiseSchedule,
+    text_emb: Tensor,
+    lengths: Tensor | Sequence[int],
+    num_steps: int = 50,
+    guidance: float = 7.5,
+    generator: torch.Generator | None = None,
+    latent_scale: float | None = None,
+    *,
+    eta: float = 0.0,
+    timestep_spacing: TimestepSpacing = "leading",
+    timesteps: Sequence[int] | Tensor | None = None,
+    x_T: Tensor | None = None,
+    num_frames: int | None = None,
+) -> Tensor:
+    """Text-to-motion with MLD: text_emb (B, E), lengths (B,) -> normalised features (B, T, D).
+
+    ``z_T ~ N(0, I)`` (B, L, C) from ``generator`` (or ``x_T``); DDIM (:func:`models.diffusion.ddim_sample`,
+    ``num_steps`` on MLD's grid unless ``timesteps``/``timestep_spacing`` say otherwise, ``eta``) on the
+    guided epsilon ``eps_u + guidance (eps_c - eps_u)`` (one batched call on ``[null; text]``; guidance 1
+    skips the unconditional pass); then ``vae.decode(latent_scale * z_0, lengths)`` with
+    ``T = num_frames`` or ``max(lengths)``, padded frames 0. ``latent_scale`` None uses the denoiser's
+    config. Both networks run in eval mode under no_grad (their modes are restored). With eta > 0 the
+    generator must live on the networks' device.
+    """
+    cfg = denoiser.config
+    scale = cfg.latent_scale if latent_scale is None else latent_scale
+    device = text_emb.device
+    shape = (text_emb.shape[0], cfg.latent_tokens, cfg.latent_dim)
+    if x_T is None:
+        x_T = torch.randn(shape, generator=generator, device=_gen_device(generator, device)).to(device)
+
+    def model_fn(x: Tensor, t: Tensor, text_emb: Tensor) -> Tensor:
+        return denoiser(x, t, text_emb)
+
+    guided = classifier_free_guidance(model_fn, guidance, {"text_emb": denoiser.null_text_like(text_emb[:1])})
+    with _eval_mode(denoiser, vae):
+        z0 = ddim_sample(
+            guided, shape, schedule, num_steps, eta, generator, cfg.prediction_type,
+            cond={"text_emb": text_emb}, x_T=x_T, timestep_spacing=timestep_spacing, timesteps=timesteps,
+        )
+        return vae.decode(z0 * scale, lengths, num_frames)

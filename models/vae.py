@@ -1,0 +1,258 @@
+"""MLD's motion VAE: a skip-transformer encoder to L latent tokens and a frame-query decoder (pure torch).
+
+Reference: ``reference/motionlcm_mld.md`` section 2 (``MldVae``); DESIGN.md "Models -> Motion VAE";
+issue 5 item 2. Shapes: B batch, T frames (padded), D feature dims (263), L latent tokens, C latent
+channels (``latent_dim``), h transformer width (``hidden_dim``, = C unless set).
+
+Encoder (MLD Sec. 3.1): frames are embedded ``Linear(D -> h)``; 2L learned *distribution tokens* are
+prepended, a positional encoding is added to ``[tokens; frames]`` and the skip transformer runs with a
+key-padding mask over the padded frames (the tokens are never masked). The first L outputs are mu,
+the next L log sigma^2 (through ``Linear(h -> C)`` when h != C, MotionLCM V2's ``force_pre_post_proj``).
+``z = mu + sigma * eps`` (reparameterisation). MLD trains the VAE *and* encodes the diffusion
+training set with sampled z, not mu.
+
+Decoder (``decoder_arch``):
+
+- ``"cross_attention"`` (default; MLD's ``encoder_decoder``): queries are zeros plus the positional
+  encoding of each frame; a skip transformer *decoder* runs self-attention over the frames (key
+  padding mask over padded frames) and cross-attention to the L latent tokens (``Linear(C -> h)`` when
+  h != C), which get no positional encoding. Final LayerNorm (inside the transformer), ``Linear(h -> D)``.
+- ``"self_attention"`` (MLD's ``all_encoder``): the L latent tokens and the T queries are concatenated,
+  encoded with the positional encoding over all L + T positions, and the last T outputs are read.
+
+Either way padded frames are set to 0 in the output, and valid frames never attend to padded ones,
+so a valid frame's output depends only on z and its own length, not on the padding.
+
+Losses (:func:`vae_loss`): ``L = w_f SmoothL1(x_hat, x) + w_j SmoothL1(FK(x_hat), FK(x)) + w_kl KL(q || N(0, I))``
+with FK = ``recover_from_ric`` of the denormalised features (global joint positions, differentiable),
+``w_kl = 1e-4``. The reconstruction terms are masked to valid frames as MotionLCM V2 does (mean over
+channels, length-masked mean over frames per sequence, mean over the batch; MLD's original loss is
+unmasked); the KL is the mean over all latent elements (MLD).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from typing import Any, Literal
+
+import numpy as np
+import torch
+from torch import Tensor, nn
+from torch.nn import functional as F
+
+from data.features import recover_from_ric
+from models.transformer import Activation, PositionalEncoding, PositionalEncodingKind, SkipTransformer, lengths_to_mask
+
+DecoderArch = Literal["cross_attention", "self_attention"]
+
+
+@dataclass(frozen=True)
+class MotionVAEConfig:
+    """Hyper-parameters of :class:`MotionVAE`; defaults are MLD's paper settings (HumanML3D).
+
+    ``hidden_dim`` None means the transformer width equals ``latent_dim`` and no latent projections
+    exist (MLD, MotionLCM V1: 1 x 256); MotionLCM V2 is ``latent_tokens=16, latent_dim=32,
+    hidden_dim=256``. ``pos_encoding`` "sinusoidal" works for any length; "learned" is MLD's own
+    (a (max_len, h) parameter, uniform init; MLD uses max_len 500).
+    """
+
+    feature_dim: int = 263
+    latent_tokens: int = 1
+    latent_dim: int = 256
+    hidden_dim: int | None = None
+    layers: int = 9
+    heads: int = 4
+    ff_dim: int = 1024
+    dropout: float = 0.1
+    activation: Activation = "gelu"
+    norm_first: bool = False
+    pos_encoding: PositionalEncodingKind = "sinusoidal"
+    max_len: int = 512
+    decoder_arch: DecoderArch = "cross_attention"
+
+    @property
+    def width(self) -> int:
+        """Transformer width h."""
+        return self.latent_dim if self.hidden_dim is None else self.hidden_dim
+
+
+@dataclass(frozen=True)
+class LatentDistribution:
+    """Diagonal Gaussian posterior ``q(z | x) = N(mu, diag(exp(logvar)))``, mu/logvar (B, L, C)."""
+
+    mu: Tensor
+    logvar: Tensor
+
+    @property
+    def std(self) -> Tensor:
+        """sigma = exp(logvar / 2), (B, L, C)."""
+        return torch.exp(0.5 * self.logvar)
+
+    def sample(self, generator: torch.Generator | None = None) -> Tensor:
+        """Reparameterised sample ``z = mu + sigma * eps``, eps ~ N(0, I) (Kingma & Welling 2014, Eq. 10)."""
+        eps = torch.randn(self.mu.shape, generator=generator, device=self.mu.device, dtype=self.mu.dtype)
+        return self.mu + self.std * eps
+
+    def kl(self) -> Tensor:
+        """Mean over all elements of KL(q || N(0, I)); see :func:`kl_to_standard_normal`."""
+        return kl_to_standard_normal(self.mu, self.logvar)
+
+
+def kl_to_standard_normal(mu: Tensor, logvar: Tensor) -> Tensor:
+    """``mean(0.5 (mu^2 + sigma^2 - 1 - log sigma^2))`` over all elements (Kingma & Welling 2014, App. B).
+
+    Element-wise KL of N(mu, sigma^2) to N(0, 1), averaged (MLD's ``KLLoss``); 0 exactly at mu = 0,
+    logvar = 0.
+    """
+    return (0.5 * (mu.square() + logvar.exp() - 1.0 - logvar)).mean()
+
+
+class MotionVAE(nn.Module):
+    """MLD's motion VAE; see the module docstring. ``config`` is a :class:`MotionVAEConfig` or its dict."""
+
+    def __init__(self, config: MotionVAEConfig | Mapping[str, Any] | None = None) -> None:
+        super().__init__()
+        cfg = config if isinstance(config, MotionVAEConfig) else MotionVAEConfig(**dict(config or {}))
+        self.config = cfg
+        h, c, n = cfg.width, cfg.latent_dim, cfg.latent_tokens
+        common = {
+            "dim": h, "num_layers": cfg.layers, "heads": cfg.heads, "ff_dim": cfg.ff_dim, "dropout": cfg.dropout,
+            "activation": cfg.activation, "norm_first": cfg.norm_first,
+        }
+        # encoder
+        self.skel_embedding = nn.Linear(cfg.feature_dim, h)
+        self.dist_tokens = nn.Parameter(torch.randn(2 * n, h))
+        self.encoder_pe = PositionalEncoding(h, cfg.pos_encoding, cfg.max_len)
+        self.encoder = SkipTransformer(**common)
+        self.latent_out: nn.Module = nn.Linear(h, c) if cfg.hidden_dim is not None else nn.Identity()
+        # decoder
+        self.latent_in: nn.Module = nn.Linear(c, h) if cfg.hidden_dim is not None else nn.Identity()
+        self.decoder_pe = PositionalEncoding(h, cfg.pos_encoding, cfg.max_len)
+        if cfg.decoder_arch not in ("cross_attention", "self_attention"):
+            raise ValueError(f"unknown decoder_arch {cfg.decoder_arch!r}")
+        self.decoder = SkipTransformer(**common, cross_attention=cfg.decoder_arch == "cross_attention")
+        self.final_layer = nn.Linear(h, cfg.feature_dim)
+
+    # ------------------------------------------------------------------------------------------ encoder
+    def encode_distribution(self, features: Tensor, lengths: Tensor | Sequence[int]) -> LatentDistribution:
+        """q(z | x): features (B, T, D) normalised, lengths (B,) -> mu, logvar (B, L, C).
+
+        Padded frames (t >= lengths[b]) are masked out as attention keys, so they do not change the result.
+        """
+        b, t, _ = features.shape
+        n = self.config.latent_tokens
+        valid = lengths_to_mask(torch.as_tensor(lengths, device=features.device), t)
+        x = torch.cat([self.dist_tokens[None].expand(b, -1, -1), self.skel_embedding(features)], dim=1)
+        pad = torch.cat([valid.new_zeros(b, 2 * n), ~valid], dim=1)
+        out = self.latent_out(self.encoder(self.encoder_pe(x), key_padding_mask=pad)[:, : 2 * n])
+        return LatentDistribution(out[:, :n], out[:, n:])
+
+    def encode(
+        self,
+        features: Tensor,
+        lengths: Tensor | Sequence[int],
+        generator: torch.Generator | None = None,
+        *,
+        sample: bool = True,
+    ) -> tuple[Tensor, LatentDistribution]:
+        """Encode and reparameterise: features (B, T, D), lengths (B,) -> (z (B, L, C), distribution).
+
+        ``z = mu + sigma * eps`` with eps from ``generator`` (MLD samples both for VAE training and when
+        encoding latents for diffusion); ``sample=False`` returns ``z = mu``.
+        """
+        dist = self.encode_distribution(features, lengths)
+        return (dist.sample(generator) if sample else dist.mu), dist
+
+    # ------------------------------------------------------------------------------------------ decoder
+    def decode(self, z: Tensor, lengths: Tensor | Sequence[int], num_frames: int | None = None) -> Tensor:
+        """p(x | z): z (B, L, C), lengths (B,) -> normalised features (B, T, D), padded frames exactly 0.
+
+        ``T = num_frames`` or ``max(lengths)``. Queries are the positional encodings of the frames.
+        """
+        b = z.shape[0]
+        lengths = torch.as_tensor(lengths, device=z.device)
+        valid = lengths_to_mask(lengths, num_frames)
+        t = valid.shape[1]
+        memory = self.latent_in(z)
+        queries = self.decoder_pe.encoding(t, z.device).to(memory.dtype)[None].expand(b, -1, -1)
+        if self.config.decoder_arch == "cross_attention":
+            out = self.decoder(queries, key_padding_mask=~valid, memory=memory)
+        else:
+            n = memory.shape[1]
+            x = self.decoder_pe(torch.cat([memory, torch.zeros_like(queries)], dim=1))
+            pad = torch.cat([valid.new_zeros(b, n), ~valid], dim=1)
+            out = self.decoder(x, key_padding_mask=pad)[:, n:]
+        return torch.where(valid[..., None], self.final_layer(out), 0.0)  # where, not *: no NaN can leak
+
+    def forward(
+        self, features: Tensor, lengths: Tensor | Sequence[int], generator: torch.Generator | None = None
+    ) -> tuple[Tensor, LatentDistribution]:
+        """Reconstruct: features (B, T, D) -> (reconstruction (B, T, D), distribution), z sampled."""
+        z, dist = self.encode(features, lengths, generator)
+        return self.decode(z, lengths, features.shape[1]), dist
+
+
+# --------------------------------------------------------------------------------------------------
+# Losses
+# --------------------------------------------------------------------------------------------------
+
+
+def masked_smooth_l1(pred: Tensor, target: Tensor, valid: Tensor, beta: float = 1.0) -> Tensor:
+    """Smooth-L1 averaged over channels, then over each sequence's valid frames, then over the batch.
+
+    pred/target (B, T, ...), valid (B, T) bool. Per element ``0.5 x^2 / beta`` if ``|x| < beta`` else
+    ``|x| - 0.5 beta`` (PyTorch ``SmoothL1Loss``, beta 1 as in MLD).
+    """
+    per = F.smooth_l1_loss(pred, target, reduction="none", beta=beta).flatten(2).mean(-1)
+    w = valid.to(per.dtype)
+    return (torch.where(valid, per, 0.0).sum(1) / w.sum(1).clamp(min=1.0)).mean()
+
+
+def _stat(x: Tensor | np.ndarray | Sequence[float], like: Tensor) -> Tensor:
+    return torch.as_tensor(np.asarray(x) if not isinstance(x, Tensor) else x).to(like.device, like.dtype)
+
+
+def reconstruction_losses(
+    recon: Tensor,
+    target: Tensor,
+    lengths: Tensor | Sequence[int],
+    mean: Tensor | np.ndarray,
+    std: Tensor | np.ndarray,
+    joints_num: int,
+) -> dict[str, Tensor]:
+    """Feature and joint reconstruction terms on normalised features (B, T, D), masked to valid frames.
+
+    ``feature = SmoothL1(x_hat, x)``; ``joint = SmoothL1(J(x_hat), J(x))`` with
+    ``J(x) = recover_from_ric(x * std + mean, joints_num)`` (B, T, J, 3), global positions in metres.
+    """
+    valid = lengths_to_mask(torch.as_tensor(lengths, device=recon.device), recon.shape[1])
+    mean_t, std_t = _stat(mean, recon), _stat(std, recon)
+    j_hat = recover_from_ric(recon * std_t + mean_t, joints_num)
+    j = recover_from_ric(target * std_t + mean_t, joints_num)
+    return {"feature": masked_smooth_l1(recon, target, valid), "joint": masked_smooth_l1(j_hat, j, valid)}
+
+
+def vae_loss(
+    model: MotionVAE,
+    features: Tensor,
+    lengths: Tensor | Sequence[int],
+    mean: Tensor | np.ndarray,
+    std: Tensor | np.ndarray,
+    joints_num: int,
+    kl_weight: float = 1e-4,
+    joint_weight: float = 1.0,
+    feature_weight: float = 1.0,
+    generator: torch.Generator | None = None,
+) -> dict[str, Tensor]:
+    """MLD's VAE objective on a batch of normalised features (B, T, D) with lengths (B,).
+
+    Returns scalars ``feature``, ``joint``, ``kl`` (unweighted) and
+    ``total = feature_weight * feature + joint_weight * joint + kl_weight * kl``.
+    ``mean``/``std`` (D,) are the dataset statistics the features were normalised with.
+    """
+    recon, dist = model(features, lengths, generator)
+    terms = reconstruction_losses(recon, features, lengths, mean, std, joints_num)
+    kl = dist.kl()
+    total = feature_weight * terms["feature"] + joint_weight * terms["joint"] + kl_weight * kl
+    return {**terms, "kl": kl, "total": total}

@@ -1,0 +1,206 @@
+"""Tests for models/vae.py: MLD's motion VAE (masks, reparameterisation, losses, a tiny overfit)."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from models.vae import (
+    LatentDistribution,
+    MotionVAE,
+    MotionVAEConfig,
+    kl_to_standard_normal,
+    masked_smooth_l1,
+    reconstruction_losses,
+    vae_loss,
+)
+
+FIXTURES = Path(__file__).parent / "fixtures" / "humanml3d"
+JOINTS = 22
+D = 263
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _one_thread() -> Iterator[None]:
+    """Tiny networks: thread start-up dominates, and 2 shared cores make 2 threads ~5x slower."""
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)
+
+
+def _gen(seed: int = 0) -> torch.Generator:
+    return torch.Generator().manual_seed(seed)
+
+
+def _tiny(**overrides: object) -> MotionVAE:
+    torch.manual_seed(0)
+    cfg = {"latent_tokens": 2, "latent_dim": 8, "layers": 3, "heads": 2, "ff_dim": 16, "dropout": 0.1}
+    return MotionVAE({**cfg, **overrides})
+
+
+@pytest.fixture(scope="module")
+def stats() -> tuple[torch.Tensor, torch.Tensor]:
+    """The real HumanML3D Mean/Std (263,)."""
+    return torch.tensor(np.load(FIXTURES / "Mean.npy")), torch.tensor(np.load(FIXTURES / "Std.npy"))
+
+
+def _smooth_motions(batch: int, frames: int, lengths: torch.Tensor, seed: int = 0) -> torch.Tensor:
+    """Random smooth normalised features (B, T, D): 4 random sinusoids per motion on a shared random basis."""
+    g = _gen(seed)
+    t = torch.arange(frames, dtype=torch.float32)
+    freq = torch.rand(batch, 4, 1, generator=g) * 0.3 + 0.05
+    phase = torch.rand(batch, 4, 1, generator=g) * 2 * math.pi
+    basis = torch.randn(4, D, generator=g) / 2.0
+    x = torch.einsum("brt,rd->btd", torch.sin(freq * t + phase), basis)
+    return x * (t[None, :, None] < lengths[:, None, None])
+
+
+# --------------------------------------------------------------------------------------------------
+# Shapes, masks and padding invariance
+# --------------------------------------------------------------------------------------------------
+
+
+def test_shapes_and_latent_projection() -> None:
+    vae = _tiny(latent_dim=4, hidden_dim=16).eval()
+    x, lengths = torch.randn(3, 10, D), torch.tensor([10, 6, 3])
+    z, dist = vae.encode(x, lengths, _gen())
+    assert z.shape == dist.mu.shape == dist.logvar.shape == (3, 2, 4)
+    assert vae.decode(z, lengths).shape == (3, 10, D)
+    assert vae.decode(z, lengths, num_frames=14).shape == (3, 14, D)
+    assert isinstance(vae.latent_out, torch.nn.Linear) and vae.latent_out.out_features == 4
+    assert isinstance(_tiny().latent_out, torch.nn.Identity)  # hidden_dim None: MLD, no projections
+    paper = MotionVAEConfig()
+    assert (paper.feature_dim, paper.latent_tokens, paper.width, paper.layers, paper.ff_dim) == (263, 1, 256, 9, 1024)
+    small = {"latent_dim": 8, "layers": 1, "ff_dim": 8}
+    assert MotionVAE(small).config == MotionVAE(MotionVAEConfig(**small)).config == MotionVAEConfig(**small)
+
+
+@pytest.mark.parametrize(
+    "overrides",
+    [{}, {"decoder_arch": "self_attention"}, {"pos_encoding": "learned", "max_len": 32}, {"norm_first": True}],
+)
+def test_padding_does_not_change_valid_outputs(overrides: dict[str, object]) -> None:
+    vae = _tiny(**overrides).eval()
+    lengths = torch.tensor([12, 7, 4])
+    x = torch.randn(3, 12, D, generator=_gen(1))
+    valid = torch.arange(12)[None, :] < lengths[:, None]
+    x_other = torch.where(valid[..., None], x, 100.0 * torch.randn(3, 12, D, generator=_gen(2)))
+    d1, d2 = vae.encode_distribution(x, lengths), vae.encode_distribution(x_other, lengths)
+    torch.testing.assert_close(d1.mu, d2.mu, atol=1e-6, rtol=0)
+    torch.testing.assert_close(d1.logvar, d2.logvar, atol=1e-6, rtol=0)
+    # extra padding frames (a longer batch) change nothing either
+    d3 = vae.encode_distribution(torch.cat([x, torch.randn(3, 5, D)], dim=1), lengths)
+    torch.testing.assert_close(d1.mu, d3.mu, atol=1e-6, rtol=0)
+
+    r1 = vae.decode(vae.encode(x, lengths, _gen(3))[0], lengths)
+    r2 = vae.decode(vae.encode(x_other, lengths, _gen(3))[0], lengths)
+    torch.testing.assert_close(r1, r2, atol=1e-6, rtol=0)
+    r3 = vae.decode(vae.encode(x, lengths, _gen(3))[0], lengths, num_frames=20)
+    torch.testing.assert_close(r1, r3[:, :12], atol=1e-6, rtol=0)
+
+
+def test_decode_zeroes_padded_frames() -> None:
+    vae = _tiny(dropout=0.0)
+    lengths = torch.tensor([9, 5, 1])
+    out = vae.decode(torch.randn(3, 2, 8), lengths, num_frames=11)
+    valid = torch.arange(11)[None, :] < lengths[:, None]
+    assert bool((out[~valid] == 0).all())
+    assert bool((out[valid].abs().sum(-1) > 0).all())
+
+
+def test_reparameterisation_uses_the_generator() -> None:
+    vae = _tiny().eval()
+    x, lengths = torch.randn(2, 6, D), torch.tensor([6, 4])
+    z1, dist = vae.encode(x, lengths, _gen(5))
+    z2, _ = vae.encode(x, lengths, _gen(5))
+    torch.testing.assert_close(z1, z2, atol=0, rtol=0)
+    eps = torch.randn(dist.mu.shape, generator=_gen(5))
+    torch.testing.assert_close(z1, dist.mu + torch.exp(0.5 * dist.logvar) * eps)
+    z_mean, _ = vae.encode(x, lengths, sample=False)
+    torch.testing.assert_close(z_mean, dist.mu, atol=0, rtol=0)
+
+
+# --------------------------------------------------------------------------------------------------
+# Losses
+# --------------------------------------------------------------------------------------------------
+
+
+def test_kl_known_values() -> None:
+    zeros = torch.zeros(2, 1, 4)
+    assert float(kl_to_standard_normal(zeros, zeros)) == 0.0
+    assert float(LatentDistribution(zeros, zeros).kl()) == 0.0
+    # KL(N(mu, s^2) || N(0, 1)) = 0.5 (mu^2 + s^2 - 1 - log s^2) per element, averaged
+    mu = torch.tensor([1.0, 0.0, 2.0, 0.0])
+    logvar = torch.tensor([0.0, math.log(2.0), 0.0, -1.0])
+    per = [0.5, 0.5 * (1.0 - math.log(2.0)), 2.0, 0.5 * (math.exp(-1.0) - 1.0 + 1.0)]
+    assert float(kl_to_standard_normal(mu, logvar)) == pytest.approx(sum(per) / 4, rel=1e-6)
+
+
+def test_masked_smooth_l1_averages_per_sequence() -> None:
+    pred = torch.zeros(2, 4, 3)
+    target = torch.zeros(2, 4, 3)
+    target[0, :2] = 0.5  # smooth-L1 0.125 on sequence 0's 2 valid frames
+    target[1, 0] = 3.0  # 2.5 on sequence 1's only valid frame
+    target[:, 3] = 100.0  # padding, ignored
+    valid = torch.tensor([[True, True, False, False], [True, False, False, False]])
+    assert float(masked_smooth_l1(pred, target, valid)) == pytest.approx((0.125 + 2.5) / 2)
+
+
+def test_joint_term_zero_on_equal_and_positive_differentiable_otherwise(stats: tuple[torch.Tensor, ...]) -> None:
+    mean, std = stats
+    feats = torch.tensor(np.load(FIXTURES / "new_joint_vecs_012314.npy")[:20])
+    target = ((feats - mean) / std)[None].repeat(2, 1, 1)
+    lengths = torch.tensor([20, 13])
+    same = reconstruction_losses(target.clone(), target, lengths, mean, std, JOINTS)
+    assert float(same["joint"]) == 0.0 and float(same["feature"]) == 0.0
+
+    recon = (target + 0.1 * torch.randn(target.shape, generator=_gen(0))).requires_grad_(True)
+    terms = reconstruction_losses(recon, target, lengths, mean, std, JOINTS)
+    assert terms["joint"].item() > 0 and terms["feature"].item() > 0
+    (grad,) = torch.autograd.grad(terms["joint"], recon)
+    assert bool(torch.isfinite(grad).all()) and float(grad[:, :, :4].abs().sum()) > 0  # root drives joints
+    assert float(grad[1, 13:].abs().sum()) == 0.0  # padded frames get no gradient
+
+    # padded frames of the reconstruction do not count
+    recon2 = recon.detach().clone()
+    recon2[1, 13:] += 5.0
+    terms2 = reconstruction_losses(recon2, target, lengths, mean, std, JOINTS)
+    for key in ("feature", "joint"):
+        torch.testing.assert_close(terms2[key], terms[key].detach())
+
+
+def test_vae_loss_combines_terms(stats: tuple[torch.Tensor, ...]) -> None:
+    mean, std = stats
+    vae = _tiny()
+    lengths = torch.tensor([8, 5])
+    x = _smooth_motions(2, 8, lengths)
+    out = vae_loss(vae, x, lengths, mean.numpy(), std.numpy(), JOINTS, kl_weight=0.1, joint_weight=2.0,
+                   generator=_gen(0))
+    assert set(out) == {"feature", "joint", "kl", "total"}
+    torch.testing.assert_close(out["total"], out["feature"] + 2.0 * out["joint"] + 0.1 * out["kl"])
+    out["total"].backward()
+    assert all(p.grad is not None for p in vae.encoder.parameters())
+    assert vae.dist_tokens.grad is not None and vae.final_layer.weight.grad is not None
+
+
+def test_tiny_vae_overfits_eight_motions(stats: tuple[torch.Tensor, ...]) -> None:
+    mean, std = stats
+    lengths = torch.tensor([16, 12, 16, 10, 14, 16, 11, 16])
+    x = _smooth_motions(8, 16, lengths)
+    vae = _tiny(latent_tokens=2, latent_dim=8, hidden_dim=32, ff_dim=64, dropout=0.0)
+    opt = torch.optim.Adam(vae.parameters(), lr=3e-3)
+    g = _gen(0)
+    losses = []
+    for _ in range(120):
+        loss = vae_loss(vae, x, lengths, mean, std, JOINTS, generator=g)["total"]
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+        losses.append(loss.item())
+    assert np.mean(losses[-5:]) < losses[0] / 5, (losses[0], losses[-5:])
