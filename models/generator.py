@@ -62,3 +62,16 @@ class Generator(Protocol):
             frames at or past ``lengths[b]`` are zero. The same ``seed`` gives the same output.
         """
         ...
+
+
+@runtime_checkable
+class Reconstructor(Protocol):
+    """An autoencoder evaluated on real motions (e.g. the motion VAE's reconstruction row).
+
+    ``reconstruct`` maps (B, T, D) normalised features with ``lengths`` (B,) to their
+    reconstruction (B, T, D), zero at or past each length.
+    """
+
+    name: str
+
+    def reconstruct(self, motions: np.ndarray, lengths: np.ndarray) -> np.ndarray: ...

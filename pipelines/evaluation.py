@@ -33,7 +33,7 @@ from data.store import StoredItem
 from data.vocab import WordVocab
 from models import metrics as M
 from models.evaluator import EvaluatorConfig, T2MEvaluator
-from models.generator import Generator, TextBatch
+from models.generator import Generator, Reconstructor, TextBatch
 from pipelines.checkpoint import load_final_model
 from pipelines.generators import pad_motions
 
@@ -142,6 +142,15 @@ def physical(raw: np.ndarray, lengths: np.ndarray, skeleton: Skeleton) -> dict[s
     return M.physical_metrics(joints, skeleton)
 
 
+def mpjpe_mm(real: np.ndarray, recon: np.ndarray, lengths: np.ndarray, joints_num: int) -> float:
+    """Mean per-joint position error (mm) between global joints recovered from two raw feature sets."""
+    errors = [
+        np.linalg.norm(recover_from_ric(recon[b, :n], joints_num) - recover_from_ric(real[b, :n], joints_num), axis=-1)
+        for b, n in enumerate(lengths)
+    ]
+    return 1000.0 * float(np.concatenate([e.reshape(-1) for e in errors]).mean())
+
+
 def text_metrics(text_emb: np.ndarray, motion_emb: np.ndarray, ref: tuple[np.ndarray, np.ndarray],
                  cfg: EvalConfig, rng: np.random.Generator) -> dict[str, float]:
     """R-precision top-1/2/3, MM-Dist, FID against ``ref`` (mu, sigma) and Diversity."""
@@ -186,14 +195,17 @@ def time_generator(gen: Generator, d: Draw, n: int) -> dict[str, float]:
 
 
 def replicate(generators: Sequence[Generator], items: Sequence[StoredItem], mean: np.ndarray, std: np.ndarray,
-              embedder: MotionEmbedder, skeleton: Skeleton, cfg: EvalConfig, r: int) -> dict[str, dict[str, float]]:
-    """Metrics of the Real row and every generator for replication ``r``."""
+              embedder: MotionEmbedder, skeleton: Skeleton, cfg: EvalConfig, r: int,
+              reconstructors: Sequence[Reconstructor] = ()) -> dict[str, dict[str, float]]:
+    """Metrics of the Real row, every reconstructor and every generator for replication ``r``."""
     rng = np.random.default_rng([cfg.seed, r])
     d = draw(items, rng, cfg.unit_length)
     ref_draw = draw(items, rng, cfg.unit_length)
     ref = M.gaussian_statistics(embedder.motions(ref_draw.real, ref_draw.lengths))
     text_emb = embedder.texts(d.tokens)
     rows = {REAL: d.real}
+    for rec in reconstructors:
+        rows[rec.name] = denormalise(rec.reconstruct((d.real - mean) / std, d.lengths), mean, std)
     for gen in generators:
         rows[gen.name] = denormalise(gen.sample(d.text, d.lengths, seed=r), mean, std)
     result = {}
@@ -202,6 +214,8 @@ def replicate(generators: Sequence[Generator], items: Sequence[StoredItem], mean
             **text_metrics(text_emb, embedder.motions(raw, d.lengths), ref, cfg, rng),
             **physical(raw, d.lengths, skeleton),
         }
+    for rec in reconstructors:
+        result[rec.name]["MPJPE_mm"] = mpjpe_mm(d.real, rows[rec.name], d.lengths, skeleton.joints_num)
     for gen in generators:
         if gen.stochastic and cfg.mm_repeats > cfg.mm_times:
             result[gen.name]["MultiModality"] = multimodality(gen, d, embedder, mean, std, cfg, r, rng)
@@ -221,12 +235,14 @@ def aggregate(per_replication: Sequence[Mapping[str, Mapping[str, float]]]) -> d
 
 
 def evaluate(generators: Sequence[Generator], items: Sequence[StoredItem], mean: np.ndarray, std: np.ndarray,
-             embedder: MotionEmbedder, skeleton: Skeleton, cfg: EvalConfig) -> dict[str, dict[str, float]]:
+             embedder: MotionEmbedder, skeleton: Skeleton, cfg: EvalConfig,
+             reconstructors: Sequence[Reconstructor] = ()) -> dict[str, dict[str, float]]:
     """The full protocol: R replications, aggregated, plus timings of each generator."""
     if len(items) < cfg.group_size:
         raise ValueError(f"the test split has {len(items)} items, fewer than one R-precision group "
                          f"({cfg.group_size})")
-    reps = [replicate(generators, items, mean, std, embedder, skeleton, cfg, r) for r in range(cfg.replications)]
+    reps = [replicate(generators, items, mean, std, embedder, skeleton, cfg, r, reconstructors)
+            for r in range(cfg.replications)]
     table = aggregate(reps)
     timing_draw = draw(items, np.random.default_rng([cfg.seed, cfg.replications]), cfg.unit_length)
     for gen in generators:

@@ -1,4 +1,4 @@
-"""Non-generative baselines behind the :class:`models.generator.Generator` interface.
+"""Generators (and the VAE reconstructor) behind :class:`models.generator.Generator`.
 
 They prove the metrics work before any model is trained (issue: evaluate stage):
 
@@ -16,9 +16,13 @@ from __future__ import annotations
 from collections.abc import Sequence
 
 import numpy as np
+import torch
 
 from data.store import StoredItem
+from models.diffusion import NoiseSchedule
 from models.generator import TextBatch
+from models.mld import MLDDenoiser, sample_mld
+from models.vae import MotionVAE
 
 
 def pad_motions(motions: Sequence[np.ndarray], lengths: np.ndarray) -> np.ndarray:
@@ -82,3 +86,37 @@ class Retrieval(_TrainingMotions):
             best = int(np.argmax(np.where(allowed, scores[b], -np.inf)))
             motions.append(self.motions[self.caption_owner[best]][:length])
         return pad_motions(motions, lengths)
+
+
+class MLDGenerator:
+    """MLD: DDIM over the VAE latent with classifier-free guidance, then VAE decoding."""
+
+    stochastic = True
+
+    def __init__(self, name: str, denoiser: MLDDenoiser, vae: MotionVAE, schedule: NoiseSchedule,
+                 num_steps: int, guidance: float) -> None:
+        self.name, self.denoiser, self.vae, self.schedule = name, denoiser, vae, schedule
+        self.num_steps, self.guidance = num_steps, guidance
+        self.nfe = num_steps * (2 if guidance != 1.0 else 1)
+
+    @torch.inference_mode()
+    def sample(self, text: TextBatch, lengths: np.ndarray, seed: int) -> np.ndarray:
+        generator = torch.Generator().manual_seed(seed)
+        out = sample_mld(self.denoiser, self.vae, self.schedule, torch.from_numpy(text.pooled.astype(np.float32)),
+                         torch.as_tensor(lengths), self.num_steps, self.guidance, generator)
+        return out.numpy()
+
+
+class VAEReconstruction:
+    """The motion VAE's encode (posterior mean) -> decode of real motions."""
+
+    name = "VAE"
+
+    def __init__(self, vae: MotionVAE) -> None:
+        self.vae = vae.eval()
+
+    @torch.inference_mode()
+    def reconstruct(self, motions: np.ndarray, lengths: np.ndarray) -> np.ndarray:
+        x, lengths_t = torch.from_numpy(motions.astype(np.float32)), torch.as_tensor(lengths)
+        z, _ = self.vae.encode(x, lengths_t, sample=False)
+        return self.vae.decode(z, lengths_t, num_frames=x.shape[1]).numpy()

@@ -29,10 +29,12 @@ import numpy as np
 from data.atomic import atomic_directory
 from data.skeleton import get_skeleton
 from data.store import StoredItem, read_split
-from models.generator import Generator
+from models.generator import Generator, Reconstructor
 from pipelines.config import REPO_ROOT, load_params
 from pipelines.evaluation import REAL, EvalConfig, evaluate, load_evaluator
-from pipelines.generators import RandomMotion, Retrieval
+from pipelines.generators import MLDGenerator, RandomMotion, Retrieval, VAEReconstruction
+from stages.train_mld import load_mld
+from stages.train_vae import load_vae
 
 
 @dataclass
@@ -51,13 +53,41 @@ def baselines(ctx: EvalContext) -> list[Generator]:
     return [RandomMotion(ctx.train, ctx.mean, ctx.std), Retrieval(ctx.train, ctx.mean, ctx.std)]
 
 
-GENERATOR_FACTORIES: list[Callable[[EvalContext], list[Generator]]] = [baselines]
+def _trained(ctx: EvalContext, stage: str) -> Path | None:
+    """A training stage's output folder, or None (with a note) when it has not been run."""
+    out = ctx.artifacts / stage
+    if (out / "model.pt").exists():
+        return out
+    print(f"evaluate: no {out}/model.pt, its rows are left out (run `dvc repro {stage}`)")
+    return None
+
+
+def mld_rows(ctx: EvalContext) -> list[Generator]:
+    """MLD with DDIM 50 (its published sampler) and the few-step DDIM 1/2/4 baselines."""
+    mld_dir, vae_dir = _trained(ctx, "train_mld"), _trained(ctx, "train_vae")
+    if mld_dir is None or vae_dir is None:
+        return []
+    denoiser, schedule, _ = load_mld(mld_dir)
+    vae, guidance = load_vae(vae_dir), ctx.params["train_mld"]["guidance"]
+    return [MLDGenerator(f"MLD-DDIM{n}", denoiser, vae, schedule, n, guidance) for n in (50, 1, 2, 4)]
+
+
+def vae_rows(ctx: EvalContext) -> list[Reconstructor]:
+    """The motion VAE's reconstruction of the test motions."""
+    vae_dir = _trained(ctx, "train_vae")
+    return [] if vae_dir is None else [VAEReconstruction(load_vae(vae_dir))]
+
+
+GENERATOR_FACTORIES: list[Callable[[EvalContext], list[Generator]]] = [baselines, mld_rows]
+RECONSTRUCTOR_FACTORIES: list[Callable[[EvalContext], list[Reconstructor]]] = [vae_rows]
 
 COLUMNS = [  # (metrics.json key, report header, decimals)
     ("R_precision_top1", "R@1 ↑", 3), ("R_precision_top2", "R@2 ↑", 3), ("R_precision_top3", "R@3 ↑", 3),
     ("FID", "FID ↓", 3), ("MM_Dist", "MM-Dist ↓", 3), ("Diversity", "Diversity →", 3),
-    ("MultiModality", "MModality ↑", 3), ("AITS_s", "AITS (s) ↓", 4), ("ms_per_frame", "ms/frame ↓", 3),
-    ("skating_ratio", "Skate ↓", 3), ("penetration_mm", "Penetrate (mm) ↓", 2), ("floating_mm", "Float (mm) ↓", 2),
+    ("MultiModality", "MModality ↑", 3), ("NFE", "NFE", 0), ("AITS_s", "AITS (s) ↓", 4),
+    ("ms_per_frame", "ms/frame ↓", 3),
+    ("MPJPE_mm", "MPJPE (mm) ↓", 1), ("skating_ratio", "Skate ↓", 3), ("penetration_mm", "Penetrate (mm) ↓", 2),
+    ("floating_mm", "Float (mm) ↓", 2),
 ]
 
 
@@ -118,9 +148,10 @@ def run(params: dict[str, Any]) -> dict[str, dict[str, float]]:
     test, train = read_split(features / "test.parquet"), read_split(features / "train.parquet")
     ctx = EvalContext(params, artifacts, train, np.load(features / "mean.npy"), np.load(features / "std.npy"))
     generators = [gen for factory in GENERATOR_FACTORIES for gen in factory(ctx)]
+    reconstructors = [rec for factory in RECONSTRUCTOR_FACTORIES for rec in factory(ctx)]
     embedder = load_evaluator(artifacts / "train_evaluator")
     skeleton = get_skeleton(params["data"]["skeleton"])
-    table = evaluate(generators, test, ctx.mean, ctx.std, embedder, skeleton, cfg)
+    table = evaluate(generators, test, ctx.mean, ctx.std, embedder, skeleton, cfg, reconstructors)
     meta = {"dataset": params["data"]["name"], "test_items": len(test), "replications": cfg.replications}
     report = report_markdown(table, meta)
     with atomic_directory(artifacts / "eval") as tmp:

@@ -46,3 +46,49 @@ def ray_cluster() -> Iterator[object]:
     finally:
         ray.shutdown()
         cluster.shutdown()
+
+
+FIXTURE_JOINTS = os.path.join(os.path.dirname(__file__), "fixtures", "humanml3d", "new_joints_012314.npy")
+SMALL_VERBS = ("walk", "run", "jump", "kick", "wave", "turn")
+
+
+def make_fixture_dataset(root, clips: int = 120, test_from: int = 75):
+    """A HumanML3D-layout dataset of ``clips`` motions made from the real fixture clip.
+
+    Clip k is the fixture from frame k % 60, turned by 0.5 k rad about y; its three captions name
+    one of six verbs. Clips [0, 70) are train, [70, 75) val, [test_from, clips) test.
+    """
+    import numpy as np
+
+    from data.humanml3d import Caption, Clip, write_dataset
+
+    base = np.load(FIXTURE_JOINTS)
+    out = []
+    for k in range(clips):
+        c, s = np.cos(0.5 * k), np.sin(0.5 * k)
+        joints = base[k % 60 :] @ np.array([[c, 0, s], [0, 1, 0], [-s, 0, c]]).T
+        verb = SMALL_VERBS[k % len(SMALL_VERBS)]
+        captions = [
+            Caption(f"a person {verb}s {how}", (("a", "DET"), ("person", "NOUN"), (verb, "VERB"), (how, "ADV")))
+            for how in ("forward", "slowly", "quickly")
+        ]
+        out.append(Clip(f"{k:04d}", captions, joints=joints.astype(np.float32), action=verb))
+    ids = [clip.clip_id for clip in out]
+    write_dataset(root, out, {"train": ids[:70], "val": ids[70:75], "test": ids[test_from:]})
+    return root
+
+
+@pytest.fixture(scope="session")
+def small_store(tmp_path_factory):
+    """params for a feature store extracted from :func:`make_fixture_dataset` (built once per session)."""
+    from pipelines.config import compose_params
+    from stages.extract_features import run
+
+    base = tmp_path_factory.mktemp("small_store")
+    root = make_fixture_dataset(base / "dataset")
+    params = compose_params(["scale=smoke"])
+    params["data"]["root"] = str(root)
+    params["features"].update(out=str(base / "features"), workers=1)
+    params["paths"].update(artifacts=str(base / "artifacts"), ray_storage=str(base / "ray_storage"))
+    run(params)
+    return params

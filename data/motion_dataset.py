@@ -1,0 +1,51 @@
+"""A torch Dataset of (normalised motion, caption embedding) pairs from the feature store.
+
+Used by every generator's training stage. Each access picks one of the item's captions at random
+and, when the item is longer than ``max_frames``, a random ``max_frames`` window, as the
+reference loaders do. Randomness comes from the process-global torch RNG, which the training
+runner seeds per rank and saves in its checkpoints, so a resumed run draws the same pairs.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch.utils.data import Dataset
+
+from data.store import read_split
+
+
+class MotionTextDataset(Dataset):
+    """Items of one split of the store.
+
+    Each element is a dict of ``motion`` (P, D) float32 normalised with ``mean``/``std`` and
+    zero past ``length``; ``length`` (int64); ``text`` (E,) pooled caption embedding; ``index``.
+    P is ``max_frames`` (every batch has the same shape).
+    """
+
+    def __init__(self, store_dir: str | Path, split: str, mean: np.ndarray, std: np.ndarray, max_frames: int) -> None:
+        self.items = read_split(Path(store_dir) / f"{split}.parquet")
+        if not self.items:
+            raise ValueError(f"{store_dir}/{split}.parquet has no items")
+        self.mean = np.asarray(mean, np.float32)
+        self.std = np.asarray(std, np.float32)
+        self.max_frames = max_frames
+
+    def __len__(self) -> int:
+        return len(self.items)
+
+    def __getitem__(self, index: int) -> dict[str, torch.Tensor]:
+        item = self.items[index]
+        caption = int(torch.randint(0, len(item.captions), ()).item())
+        length = min(item.length, self.max_frames)
+        start = int(torch.randint(0, item.length - length + 1, ()).item())
+        motion = np.zeros((self.max_frames, item.features.shape[1]), np.float32)
+        motion[:length] = (item.features[start : start + length] - self.mean) / self.std
+        return {
+            "motion": torch.from_numpy(motion),
+            "length": torch.tensor(length),
+            "text": torch.from_numpy(item.text_pooled[caption].astype(np.float32)),
+            "index": torch.tensor(index),
+        }
