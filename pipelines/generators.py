@@ -13,12 +13,16 @@ first frames for Retrieval); only motions at least that long are candidates.
 
 from __future__ import annotations
 
+import json
 from collections.abc import Sequence
+from pathlib import Path
 
 import numpy as np
 import torch
 
+from data.features import recover_from_ric
 from data.store import StoredItem
+from data.text_encoders import build_text_encoder
 from models.diffusion import NoiseSchedule
 from models.generator import TextBatch
 from models.mld import MLDDenoiser, sample_mld
@@ -120,3 +124,18 @@ class VAEReconstruction:
         x, lengths_t = torch.from_numpy(motions.astype(np.float32)), torch.as_tensor(lengths)
         z, _ = self.vae.encode(x, lengths_t, sample=False)
         return self.vae.decode(z, lengths_t, num_frames=x.shape[1]).numpy()
+
+
+def encode_prompts(texts: Sequence[str], features_dir: Path) -> TextBatch:
+    """Prompts encoded by the same frozen text encoder the feature store was built with."""
+    encoder_meta = json.loads((Path(features_dir) / "meta.json").read_text())["text_encoder"]
+    path = encoder_meta["path"] if encoder_meta["name"] != "minilm" else None
+    encoder = build_text_encoder(encoder_meta["name"], path=path, max_length=encoder_meta["max_length"])
+    enc = encoder.encode(list(texts))
+    return TextBatch(list(texts), enc.pooled, [enc.tokens[k][enc.mask[k]] for k in range(len(texts))])
+
+
+def motions_to_joints(features: np.ndarray, lengths: np.ndarray, mean: np.ndarray, std: np.ndarray) -> list[np.ndarray]:
+    """Normalised (B, T, D) generator output -> B global joint arrays (L_b, J, 3)."""
+    joints_num = (features.shape[-1] + 1) // 12
+    return [recover_from_ric(features[b, :n] * std + mean, joints_num) for b, n in enumerate(lengths)]

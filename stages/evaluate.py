@@ -8,7 +8,8 @@ on the test split with the trained evaluator and writes atomically to ``artifact
   ``Diversity``, ``MultiModality`` (stochastic generators only), ``AITS_s`` and
   ``ms_per_frame`` (generators only), physical measures, and ``<key>_ci`` for each
   replicated metric. A metric that does not apply to a row is absent.
-- ``report.md``: the paper-style table; ``fid_vs_time.png``: FID against inference time.
+- ``report.md``: the paper-style table; ``fid_vs_time.png``: FID against inference time;
+  ``samples/<row>_<k>.gif``: the fixed prompts of ``evaluate.samples`` for the chosen rows.
 
 Rows come from :data:`GENERATOR_FACTORIES`: each factory returns the generators it can build
 from the artefacts present (model stages register theirs there).
@@ -27,12 +28,20 @@ import matplotlib.pyplot as plt
 import numpy as np
 
 from data.atomic import atomic_directory
+from data.render import render_animation
 from data.skeleton import get_skeleton
 from data.store import StoredItem, read_split
 from models.generator import Generator, Reconstructor
 from pipelines.config import REPO_ROOT, load_params
 from pipelines.evaluation import REAL, EvalConfig, evaluate, load_evaluator
-from pipelines.generators import MLDGenerator, RandomMotion, Retrieval, VAEReconstruction
+from pipelines.generators import (
+    MLDGenerator,
+    RandomMotion,
+    Retrieval,
+    VAEReconstruction,
+    encode_prompts,
+    motions_to_joints,
+)
 from stages.train_mld import load_mld
 from stages.train_vae import load_vae
 
@@ -131,8 +140,25 @@ def plot_fid_vs_time(table: dict[str, dict[str, float]], path: Path) -> None:
     plt.close(fig)
 
 
+def render_samples(generators: Sequence[Generator], ctx: EvalContext, out: Path) -> None:
+    """GIFs of the fixed prompts (``evaluate.samples``) for the chosen rows, to look at."""
+    cfg = ctx.params["evaluate"]["samples"]
+    chosen = [gen for gen in generators if gen.name in cfg["rows"]]
+    if not chosen:
+        return
+    out.mkdir()
+    text = encode_prompts(cfg["prompts"], REPO_ROOT / ctx.params["features"]["out"])
+    lengths = np.full(len(text), cfg["length"])
+    skeleton = get_skeleton(ctx.params["data"]["skeleton"])
+    for gen in chosen:
+        motions = motions_to_joints(gen.sample(text, lengths, seed=0), lengths, ctx.mean, ctx.std)
+        for k, (joints, prompt) in enumerate(zip(motions, text.texts, strict=True)):
+            render_animation(joints, out / f"{gen.name}_{k}.gif", prompt, skeleton)
+
+
 def eval_config(section: dict[str, Any]) -> EvalConfig:
-    """The ``evaluate`` params section as an EvalConfig (unknown keys are an error)."""
+    """The ``evaluate`` params section (less ``samples``) as an EvalConfig; unknown keys are an error."""
+    section = {key: value for key, value in section.items() if key != "samples"}
     names = {f.name for f in fields(EvalConfig)}
     unknown = set(section) - names
     if unknown:
@@ -158,6 +184,7 @@ def run(params: dict[str, Any]) -> dict[str, dict[str, float]]:
         (tmp / "metrics.json").write_text(json.dumps(table, indent=2) + "\n")
         (tmp / "report.md").write_text(report)
         plot_fid_vs_time(table, tmp / "fid_vs_time.png")
+        render_samples(generators, ctx, tmp / "samples")
     print(report)
     return table
 

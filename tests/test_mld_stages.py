@@ -13,7 +13,7 @@ import pytest
 
 from models.generator import Generator, TextBatch
 from pipelines.generators import MLDGenerator
-from stages import evaluate, train_evaluator, train_mld, train_vae
+from stages import evaluate, generate, train_evaluator, train_mld, train_vae
 
 TINY_NET = {"layers": 1, "heads": 2, "ff_dim": 32}
 
@@ -28,6 +28,7 @@ def trained(small_store, ray_cluster):
     params["train_mld"].update(max_steps=6, batch_size=8, max_frames=64, log_every=3, warmup_steps=0)
     params["train_mld"]["model"].update(time_freq_dim=16, **TINY_NET)
     params["evaluate"].update(replications=1, diversity_times=10, mm_texts=4, mm_repeats=11, timing_sentences=2)
+    params["evaluate"]["samples"].update(prompts=["a person walks forward"], length=40)
     in_process = copy.deepcopy(params)
     in_process["ray"]["num_workers"] = 0
     train_evaluator.run(in_process)
@@ -73,3 +74,15 @@ def test_evaluate_reports_every_row(trained):
     out = trained["paths"]["artifacts"] + "/eval"
     assert json.loads(open(f"{out}/metrics.json").read()) == table
     assert "| MLD-DDIM50 |" in open(f"{out}/report.md").read()
+    assert (Path(out) / "samples" / "MLD-DDIM50_0.gif").stat().st_size > 1000
+
+
+def test_generate_command_writes_joints_and_animation(trained, tmp_path):
+    [npy] = generate.generate(trained, "mld", ["a person kicks"], [44], tmp_path / "kick.npy", seed=3)
+    joints = np.load(npy)
+    assert joints.shape == (44, 22, 3) and np.isfinite(joints).all()
+    gifs = generate.generate(trained, "mld", ["a person runs", "a person waves"], [40, 40], tmp_path / "m.gif",
+                             steps=2)
+    assert [p.name for p in gifs] == ["m_0.gif", "m_1.gif"] and all(p.stat().st_size > 1000 for p in gifs)
+    with pytest.raises(ValueError, match="unknown model"):
+        generate.generate(trained, "nope", ["x"], [40], tmp_path / "x.npy")
