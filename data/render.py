@@ -1,0 +1,301 @@
+"""Stick-figure pictures of motions: GIF/MP4 animations, frame strips and contact sheets.
+
+Every function takes global joint positions (T, J, 3) (y up, metres) of any skeleton in
+:mod:`data.skeleton`; features can be turned into joints first with :func:`joints_of`, given a
+recover function such as ``data.features.recover_from_ric``. Drawing uses matplotlib's Agg
+canvas directly (no pyplot, no display); GIFs are written with Pillow, MP4 with ffmpeg through
+matplotlib when ffmpeg is installed.
+
+The camera is orthographic, looking down at ``elev`` degrees from ``azim`` degrees around the
+vertical (0: from the front of a body facing +z; ``None``: 35 degrees off the motion's own
+initial facing direction). Bones of the left side are blue, the right side
+red, the spine black; the floor is a grey 0.5 m grid; the root's ground trajectory is a dashed
+line.
+"""
+
+from __future__ import annotations
+
+import shutil
+import textwrap
+from collections.abc import Callable, Sequence
+from pathlib import Path
+
+import numpy as np
+from matplotlib.animation import FFMpegWriter
+from matplotlib.axes import Axes
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.figure import Figure
+from PIL import Image
+
+from data.skeleton import HUMANML3D, Skeleton
+
+GRID_STEP = 0.5
+MAX_FLOOR = 15.0  # floor grid half-size cap (m): a wild generated motion must not draw thousands of lines
+_COLORS = ("#d62728", "#1f77b4", "#222222", "#ff7f0e", "#17becf")  # chains: right leg, left leg, spine, r/l arm
+_FLOOR_COLOR = "#bbbbbb"
+_TRAJ_COLOR = "#2ca02c"
+
+
+def joints_of(motion: np.ndarray, recover: Callable[[np.ndarray, int], np.ndarray] | None = None,
+              skeleton: Skeleton = HUMANML3D) -> np.ndarray:
+    """(T, J, 3) joints from joints (returned as is) or from (T, D) features via ``recover``."""
+    motion = np.asarray(motion, dtype=np.float64)
+    if motion.ndim == 3:
+        return motion * skeleton.unit
+    if recover is None:
+        raise ValueError(f"motion of shape {motion.shape} looks like features: pass a recover function")
+    return np.asarray(recover(motion, skeleton.joints_num), dtype=np.float64) * skeleton.unit
+
+
+class Camera:
+    """Orthographic projection of world points onto a screen plane (x right, y up)."""
+
+    def __init__(self, azim: float = 35.0, elev: float = 15.0) -> None:
+        a, e = np.radians(azim), np.radians(elev)
+        self.right = np.array([-np.cos(a), 0.0, np.sin(a)])
+        toward = np.array([np.sin(a) * np.cos(e), np.sin(e), np.cos(a) * np.cos(e)])  # to the camera
+        self.up = np.cross(self.right, toward)
+
+    def project(self, points: np.ndarray) -> np.ndarray:
+        """(..., 3) -> (..., 2) screen coordinates."""
+        return np.stack([points @ self.right, points @ self.up], axis=-1)
+
+
+def _as_joints(joints: np.ndarray) -> np.ndarray:
+    """float64 copy with non-finite values zeroed (a diverged generated motion still renders)."""
+    return np.nan_to_num(np.asarray(joints, dtype=np.float64), nan=0.0, posinf=0.0, neginf=0.0)
+
+
+def _floor_lines(center: np.ndarray, radius: float) -> list[np.ndarray]:
+    """Grid lines (2, 3) on y = 0 covering a square of ``radius`` (capped) around ``center`` (x, z)."""
+    radius = min(radius, MAX_FLOOR)
+    lo = np.floor((center - radius) / GRID_STEP) * GRID_STEP
+    hi = np.ceil((center + radius) / GRID_STEP) * GRID_STEP
+    lines = []
+    for x in np.arange(lo[0], hi[0] + 1e-9, GRID_STEP):
+        lines.append(np.array([[x, 0.0, lo[1]], [x, 0.0, hi[1]]]))
+    for z in np.arange(lo[1], hi[1] + 1e-9, GRID_STEP):
+        lines.append(np.array([[lo[0], 0.0, z], [hi[0], 0.0, z]]))
+    return lines
+
+
+def _draw_floor(ax: Axes, camera: Camera, center: np.ndarray, radius: float) -> None:
+    for line in _floor_lines(center, radius):
+        xy = camera.project(line)
+        ax.plot(xy[:, 0], xy[:, 1], color=_FLOOR_COLOR, lw=0.5, zorder=0)
+
+
+def _draw_trajectory(ax: Axes, camera: Camera, joints: np.ndarray) -> None:
+    ground = joints[:, 0].copy()
+    ground[:, 1] = 0.0
+    xy = camera.project(ground)
+    ax.plot(xy[:, 0], xy[:, 1], color=_TRAJ_COLOR, lw=1.0, ls="--", zorder=1)
+
+
+def _draw_pose(ax: Axes, camera: Camera, pose: np.ndarray, skeleton: Skeleton, alpha: float = 1.0,
+               lw: float = 2.0) -> list:
+    """Draw one pose (J, 3); returns the line artists (one per kinematic chain)."""
+    artists = []
+    for k, chain in enumerate(skeleton.kinematic_chain):
+        xy = camera.project(pose[list(chain)])
+        (line,) = ax.plot(xy[:, 0], xy[:, 1], color=_COLORS[k % len(_COLORS)], lw=lw, alpha=alpha,
+                          solid_capstyle="round", zorder=2)
+        artists.append(line)
+    return artists
+
+
+def _limits(camera: Camera, center: np.ndarray, radius: float, height: float) -> tuple[float, float, float, float]:
+    """Screen box (x0, x1, y0, y1) of a world box around ``center`` (x, z) of ``radius`` and ``height``."""
+    box = np.array([[center[0] + dx, y, center[1] + dz] for dx in (-radius, radius) for dz in (-radius, radius)
+                    for y in (0.0, height)])
+    xy = camera.project(box)
+    return float(xy[:, 0].min()), float(xy[:, 0].max()), float(xy[:, 1].min()), float(xy[:, 1].max())
+
+
+def _setup_axes(ax: Axes, camera: Camera, center: np.ndarray, radius: float, height: float) -> None:
+    """Fix the view on a box around ``center`` (x, z) of ``radius`` and ``height``."""
+    x0, x1, y0, y1 = _limits(camera, center, radius, height)
+    ax.set_xlim(x0, x1)
+    ax.set_ylim(y0, y1)
+    ax.set_aspect("equal")
+    ax.axis("off")
+
+
+def _title(ax: Axes, caption: str | None, width: int, size: float) -> None:
+    if caption:
+        ax.set_title("\n".join(textwrap.wrap(caption, width, max_lines=3, placeholder=" ...")), fontsize=size)
+
+
+def facing_azimuth(joints: np.ndarray, skeleton: Skeleton = HUMANML3D, offset: float = 35.0) -> float:
+    """Camera azimuth (degrees) ``offset`` degrees round from the front of the body at frame 0."""
+    r_hip, l_hip = skeleton.face_joints[:2]
+    left = joints[0, l_hip] - joints[0, r_hip]
+    return float(np.degrees(np.arctan2(-left[2], left[0]))) + offset
+
+
+def _frame_figure(size: float, dpi: int) -> tuple[Figure, Axes]:
+    fig = Figure(figsize=(size, size), dpi=dpi)
+    ax = fig.add_axes((0.0, 0.0, 1.0, 0.88))
+    return fig, ax
+
+
+def _follow(joints: np.ndarray) -> np.ndarray:
+    """(T, 2) camera centre following the root's ground position (smoothed)."""
+    from scipy.ndimage import gaussian_filter1d
+
+    return gaussian_filter1d(joints[:, 0, [0, 2]], sigma=5.0, axis=0, mode="nearest")
+
+
+def render_frames(joints: np.ndarray, caption: str | None = None, skeleton: Skeleton = HUMANML3D,
+                  stride: int = 1, size: float = 3.2, dpi: int = 80, azim: float | None = None,
+                  elev: float = 15.0) -> list[Image.Image]:
+    """One RGB image per ``stride``-th frame: the pose, the floor, the trajectory, the caption.
+
+    The camera follows the root; the floor grid and the trajectory are drawn once and the pose
+    lines are updated in place, so a frame costs one canvas draw.
+    """
+    joints = _as_joints(joints)
+    camera = Camera(facing_azimuth(joints, skeleton) if azim is None else azim, elev)
+    centers = _follow(joints)
+    height = max(float(joints[..., 1].max()) + 0.1, 2.0)
+    fig, ax = _frame_figure(size, dpi)
+    canvas = FigureCanvasAgg(fig)
+    _setup_axes(ax, camera, centers[0], 1.5, height)
+    middle = (centers.min(axis=0) + centers.max(axis=0)) / 2
+    _draw_floor(ax, camera, middle, float(np.abs(centers - middle).max()) + 2.0)
+    _draw_trajectory(ax, camera, joints)
+    lines = _draw_pose(ax, camera, joints[0], skeleton)
+    _title(ax, caption, 40, 8)
+    clock = ax.text(0.02, 0.02, "", transform=ax.transAxes, fontsize=7)
+    images = []
+    for t in range(0, len(joints), stride):
+        for line, chain in zip(lines, skeleton.kinematic_chain, strict=True):
+            xy = camera.project(joints[t, list(chain)])
+            line.set_data(xy[:, 0], xy[:, 1])
+        x0, x1, y0, y1 = _limits(camera, centers[t], 1.5, height)
+        ax.set_xlim(x0, x1)
+        ax.set_ylim(y0, y1)
+        clock.set_text(f"{t / skeleton.fps:5.2f}s")  # also keeps Pillow from merging still frames
+        canvas.draw()
+        images.append(Image.fromarray(np.asarray(canvas.buffer_rgba())[..., :3].copy()))
+    return images
+
+
+def _save_gif(images: Sequence[Image.Image], path: Path, duration_ms: int) -> None:
+    """Animated GIF with one palette for all frames (fast, small, no flicker)."""
+    samples = images[:: max(1, len(images) // 8)]
+    width, height = samples[0].size
+    montage = Image.new("RGB", (width * len(samples), height))
+    for k, image in enumerate(samples):
+        montage.paste(image, (k * width, 0))
+    palette = montage.quantize(colors=64, method=Image.Quantize.MEDIANCUT, dither=Image.Dither.NONE)
+    frames = [image.quantize(palette=palette, dither=Image.Dither.NONE) for image in images]
+    frames[0].save(path, save_all=True, append_images=frames[1:], duration=duration_ms, loop=0)
+
+
+def render_animation(joints: np.ndarray, path: Path | str, caption: str | None = None,
+                     skeleton: Skeleton = HUMANML3D, stride: int = 2, **view: float) -> Path:
+    """Write a GIF (or MP4, which needs ffmpeg) of a motion; returns the path.
+
+    ``stride`` keeps every n-th frame (the playback speed stays real time). ``view`` takes
+    ``size``, ``dpi``, ``azim`` and ``elev`` as in :func:`render_frames`.
+
+    Raises:
+        RuntimeError: an MP4 was asked for and ffmpeg is not installed.
+        ValueError: an unknown file extension.
+    """
+    path = Path(path)
+    suffix = path.suffix.lower()
+    if suffix not in (".gif", ".mp4"):
+        raise ValueError(f"{path}: expected a .gif or .mp4 file name")
+    if suffix == ".mp4" and shutil.which("ffmpeg") is None:
+        raise RuntimeError("writing MP4 needs ffmpeg on PATH; write a .gif instead")
+    images = render_frames(joints, caption, skeleton, stride, **view)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    if suffix == ".gif":
+        _save_gif(images, path, int(round(1000 * stride / skeleton.fps)))
+    else:
+        _write_mp4(images, path, skeleton.fps / stride)
+    return path
+
+
+def _write_mp4(images: Sequence[Image.Image], path: Path, fps: float) -> None:
+    """Encode frames with ffmpeg through matplotlib's writer."""
+    width, height = images[0].size
+    fig = Figure(figsize=(width / 100, height / 100), dpi=100)
+    ax = fig.add_axes((0.0, 0.0, 1.0, 1.0))
+    ax.axis("off")
+    shown = ax.imshow(images[0])
+    FigureCanvasAgg(fig)
+    writer = FFMpegWriter(fps=fps)
+    with writer.saving(fig, str(path), dpi=100):
+        for image in images:
+            shown.set_data(image)
+            writer.grab_frame()
+
+
+def render_strip(joints: np.ndarray, path: Path | str, caption: str | None = None,
+                 skeleton: Skeleton = HUMANML3D, count: int = 6, azim: float | None = None,
+                 elev: float = 15.0) -> Path:
+    """PNG of ``count`` evenly spaced frames side by side (a quick look at a motion)."""
+    joints = _as_joints(joints)
+    times = np.linspace(0, len(joints) - 1, count).round().astype(int)
+    camera = Camera(facing_azimuth(joints, skeleton) if azim is None else azim, elev)
+    centers = _follow(joints)
+    height = max(float(joints[..., 1].max()) + 0.1, 2.0)
+    fig = Figure(figsize=(2.4 * count, 3.0), dpi=80)
+    fig.subplots_adjust(left=0.0, right=1.0, bottom=0.0, top=0.86, wspace=0.0)
+    for k, t in enumerate(times):
+        ax = fig.add_subplot(1, count, k + 1)
+        _setup_axes(ax, camera, centers[t], 0.8, height)
+        _draw_floor(ax, camera, centers[t], 1.0)
+        _draw_trajectory(ax, camera, joints)
+        _draw_pose(ax, camera, joints[t], skeleton)
+        ax.set_title(f"{t / skeleton.fps:.1f}s", fontsize=8)
+    if caption:
+        fig.suptitle(textwrap.shorten(caption, 160), fontsize=9)
+    return _save_png(fig, path)
+
+
+def _draw_overview(ax: Axes, joints: np.ndarray, skeleton: Skeleton, caption: str | None, poses: int,
+                   camera: Camera) -> None:
+    """A whole motion in one panel: floor, trajectory and ``poses`` poses fading in over time."""
+
+    ground = joints[:, 0, [0, 2]]
+    center = (ground.min(axis=0) + ground.max(axis=0)) / 2
+    radius = max(float(np.abs(ground - center).max()) + 0.6, 1.0)
+    _setup_axes(ax, camera, center, radius, max(float(joints[..., 1].max()) + 0.1, 2.0))
+    _draw_floor(ax, camera, center, radius)
+    _draw_trajectory(ax, camera, joints)
+    for k, t in enumerate(np.linspace(0, len(joints) - 1, poses).round().astype(int)):
+        _draw_pose(ax, camera, joints[t], skeleton, alpha=0.25 + 0.75 * (k + 1) / poses, lw=1.2)
+    _title(ax, caption, 34, 6.5)
+
+
+def contact_sheet(motions: Sequence[np.ndarray], path: Path | str, captions: Sequence[str | None] | None = None,
+                  skeleton: Skeleton = HUMANML3D, cols: int = 5, poses: int = 5, azim: float | None = None,
+                  elev: float = 15.0) -> Path:
+    """PNG grid with one panel per motion (see :func:`_draw_overview`), captions as titles.
+
+    ``azim=None`` views each motion from 35 degrees off its initial facing direction.
+    """
+    if not motions:
+        raise ValueError("contact_sheet needs at least one motion")
+    captions = list(captions) if captions is not None else [None] * len(motions)
+    rows = -(-len(motions) // cols)
+    fig = Figure(figsize=(2.6 * cols, 2.9 * rows), dpi=80)
+    for k, (motion, caption) in enumerate(zip(motions, captions, strict=True)):
+        ax = fig.add_subplot(rows, cols, k + 1)
+        joints = _as_joints(motion)
+        camera = Camera(facing_azimuth(joints, skeleton) if azim is None else azim, elev)
+        _draw_overview(ax, joints, skeleton, caption, poses, camera)
+    fig.subplots_adjust(left=0.01, right=0.99, bottom=0.01, top=0.95, wspace=0.05, hspace=0.3)
+    return _save_png(fig, path)
+
+
+def _save_png(fig: Figure, path: Path | str) -> Path:
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    FigureCanvasAgg(fig)
+    fig.savefig(path, format="png", metadata={"Software": None})
+    return path

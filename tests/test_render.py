@@ -1,0 +1,115 @@
+"""Stick-figure rendering: GIFs, strips, contact sheets and the ``stages.render`` command."""
+
+from __future__ import annotations
+
+import shutil
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from data.render import contact_sheet, joints_of, render_animation, render_strip
+from data.skeleton import HUMANML3D
+from data.synthetic import SyntheticConfig, generate_motion
+from stages import render as render_stage
+
+
+@pytest.fixture(scope="module")
+def motion():
+    return generate_motion(3, 1, SyntheticConfig(num_motions=2, workers=1))
+
+
+def _is_drawn(image: Image.Image) -> bool:
+    """Not blank: some dark (figure) pixels on a mostly white background."""
+    pixels = np.asarray(image.convert("L"), dtype=np.float64)
+    return (pixels < 128).mean() > 0.002 and (pixels > 240).mean() > 0.5
+
+
+def test_gif_has_one_frame_per_stride_and_shows_the_figure(tmp_path, motion):
+    path = render_animation(motion.joints, tmp_path / "m.gif", motion.captions[0].text, stride=3)
+    with Image.open(path) as gif:
+        assert gif.n_frames == len(range(0, len(motion.joints), 3))
+        assert gif.info["duration"] == 150
+        firsts = []
+        for k in (0, gif.n_frames // 2, gif.n_frames - 1):
+            gif.seek(k)
+            frame = gif.convert("RGB")
+            assert _is_drawn(frame)
+            firsts.append(np.asarray(frame))
+    assert not np.array_equal(firsts[0], firsts[1])  # it moves
+
+
+def test_mp4_needs_ffmpeg(tmp_path, motion):
+    if shutil.which("ffmpeg"):
+        path = render_animation(motion.joints[:20], tmp_path / "m.mp4")
+        assert path.stat().st_size > 1000
+    else:
+        with pytest.raises(RuntimeError, match="ffmpeg"):
+            render_animation(motion.joints, tmp_path / "m.mp4")
+    with pytest.raises(ValueError, match="gif"):
+        render_animation(motion.joints, tmp_path / "m.avi")
+
+
+def test_contact_sheet_has_a_panel_per_motion(tmp_path, motion):
+    motions = [motion.joints, motion.joints[::-1], motion.joints[:50]]
+    path = contact_sheet(motions, tmp_path / "sheet.png", ["a", "b", None], cols=2)
+    with Image.open(path) as sheet:
+        assert sheet.size == (2 * 2.6 * 80, 2 * 2.9 * 80)
+        assert _is_drawn(sheet)
+        left, right = np.asarray(sheet.convert("L"))[:, :208], np.asarray(sheet.convert("L"))[:, 208:]
+        assert (left < 128).any() and (right < 128).any()
+    with pytest.raises(ValueError, match="at least one"):
+        contact_sheet([], tmp_path / "empty.png")
+
+
+def test_strip_of_frames(tmp_path, motion):
+    path = render_strip(motion.joints, tmp_path / "strip.png", "caption", count=4)
+    with Image.open(path) as strip:
+        assert strip.size[0] > 3 * strip.size[1] and _is_drawn(strip)
+
+
+def test_joints_of_recovers_features_with_the_given_function(motion):
+    def fake_recover(features, joints_num):
+        return np.zeros((len(features), joints_num, 3))
+
+    assert joints_of(motion.joints).shape == motion.joints.shape
+    assert joints_of(np.zeros((7, 263)), fake_recover).shape == (7, 22, 3)
+    with pytest.raises(ValueError, match="recover"):
+        joints_of(np.zeros((7, 263)))
+
+
+def test_render_command_takes_a_file_or_a_clip_id(tmp_path, motion):
+    file = tmp_path / "motion.npy"
+    np.save(file, motion.joints)
+    out = render_stage.main([str(file), "--out", str(tmp_path / "from_file.gif"), "--stride", "4"])
+    assert out.stat().st_size > 10_000
+    root = tmp_path / "ds"
+    (root / "new_joints").mkdir(parents=True)
+    (root / "texts").mkdir()
+    np.save(root / "new_joints" / "000007.npy", motion.joints)
+    (root / "texts" / "000007.txt").write_text(motion.captions[0].to_line() + "\n")
+    out = render_stage.main(["000007", "--root", str(root), "--out", str(tmp_path / "by_id.gif"), "--stride", "4"])
+    with Image.open(out) as gif:
+        assert gif.n_frames == len(range(0, len(motion.joints), 4))
+    with pytest.raises(FileNotFoundError, match="neither"):
+        render_stage.main(["999999", "--root", str(root)])
+
+
+def test_render_command_recovers_features(tmp_path, motion):
+    features = pytest.importorskip("data.features")
+    feats = features.features_from_joints(motion.joints, HUMANML3D)
+    file = tmp_path / "features.npy"
+    np.save(file, feats)
+    out = render_stage.main([str(file), "--out", str(tmp_path / "feats.gif"), "--stride", "8"])
+    with Image.open(out) as gif:
+        assert gif.n_frames == len(range(0, len(feats), 8))
+
+
+def test_a_diverged_motion_still_renders(tmp_path):
+    wild = np.random.default_rng(0).normal(0.0, 1.0, (12, 22, 3)) * 1000.0
+    wild[3] = np.nan
+    path = render_animation(wild, tmp_path / "wild.gif", "diverged", stride=1)
+    with Image.open(path) as gif:
+        assert gif.n_frames == 12
+    render_strip(wild, tmp_path / "wild.png", count=3)
+    contact_sheet([wild], tmp_path / "wild_sheet.png")
