@@ -143,12 +143,16 @@ def physical(raw: np.ndarray, lengths: np.ndarray, skeleton: Skeleton) -> dict[s
 
 
 def mpjpe_mm(real: np.ndarray, recon: np.ndarray, lengths: np.ndarray, joints_num: int) -> float:
-    """Mean per-joint position error (mm) between global joints recovered from two raw feature sets."""
-    errors = [
-        np.linalg.norm(recover_from_ric(recon[b, :n], joints_num) - recover_from_ric(real[b, :n], joints_num), axis=-1)
-        for b, n in enumerate(lengths)
-    ]
-    return 1000.0 * float(np.concatenate([e.reshape(-1) for e in errors]).mean())
+    """Root-aligned mean per-joint position error (mm) of two raw feature sets' recovered joints.
+
+    As MLD's reconstruction metric: per frame, both skeletons are moved so their root joints
+    coincide, then the joint distances are averaged over valid frames and joints.
+    """
+    errors = []
+    for b, n in enumerate(lengths):
+        a, r = recover_from_ric(real[b, :n], joints_num), recover_from_ric(recon[b, :n], joints_num)
+        errors.append(np.linalg.norm((a - a[:, :1]) - (r - r[:, :1]), axis=-1).reshape(-1))
+    return 1000.0 * float(np.concatenate(errors).mean())
 
 
 def text_metrics(text_emb: np.ndarray, motion_emb: np.ndarray, ref: tuple[np.ndarray, np.ndarray],

@@ -22,8 +22,9 @@ def test_group_choice_recomposes_conf():
     assert kit["data"]["skeleton"] == "kit"
     assert kit["data"]["root"] == "datasets/KIT-ML"
     assert kit["scale"] == "smoke"
-    # other sections come from conf/config.yaml unchanged
-    assert kit["features"] == compose_params()["features"]
+    # the scale group changes sizes; sections it does not touch come from conf/config.yaml unchanged
+    assert kit["synthetic"]["num_motions"] < compose_params()["synthetic"]["num_motions"]
+    assert kit["paths"] == compose_params()["paths"]
 
 
 def test_dotted_override_parses_yaml_values_and_keeps_the_rest():

@@ -127,3 +127,17 @@ def test_too_few_test_items_is_a_clear_error(world):
     codes, test, train = world
     with pytest.raises(ValueError, match="fewer than one R-precision group"):
         evaluate([], test[:10], np.zeros(D), np.ones(D), StubEmbedder(codes), HUMANML3D, CFG)
+
+
+def test_mpjpe_is_root_aligned_and_in_millimetres():
+    from pipelines.evaluation import mpjpe_mm
+
+    rng = np.random.default_rng(3)
+    real = rng.standard_normal((2, 50, D)).astype(np.float32) * 0.05
+    moved = real.copy()
+    moved[..., 1:3] += 0.3  # different root velocity: the whole body drifts, poses are unchanged
+    lengths = np.array([50, 30])
+    assert mpjpe_mm(real, moved, lengths, 22) == pytest.approx(0.0, abs=1e-3)
+    bent = real.copy()
+    bent[..., 4:7] += 0.01  # joint 1 shifted by 1 cm in every valid frame (RIC positions)
+    assert mpjpe_mm(real, bent, lengths, 22) == pytest.approx(10 * np.sqrt(3) / 22, rel=1e-3)  # 1 of 22 joints
