@@ -22,7 +22,7 @@ from __future__ import annotations
 import sys
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import torch
@@ -36,6 +36,9 @@ from pipelines.checkpoint import load_final_model
 from pipelines.config import REPO_ROOT, load_params
 from pipelines.evaluation import build_evaluator
 from pipelines.runner import Components, StepContext, TrainSpec, run_training
+
+if TYPE_CHECKING:
+    from pipelines.sweep import SweepTarget
 
 RUNNER_KEYS = ("seed", "batch_size", "grad_clip", "log_every", "lr_schedule", "warmup_steps")
 
@@ -190,6 +193,32 @@ def run(params: dict[str, Any]) -> Path:
     result = run_training("train_evaluator", MATCHING, matching, params["ray"], out / "train_evaluator", storage)
     print(f"train_evaluator: {result.metrics.get('loss', float('nan')):.4f} final loss -> {result.out_dir}")
     return result.out_dir
+
+
+# --------------------------------------------------------------------------- sweeps
+
+
+def matching_loop_config(params: dict[str, Any]) -> dict:
+    """The matching run's loop config (what sweep trials vary)."""
+    return loop_configs(params)[1]
+
+
+def movement_prerequisite(params: dict[str, Any], work_dir: Path, storage: str) -> dict:
+    """Train the movement autoencoder once (under ``work_dir``) for every sweep trial to build on."""
+    from pipelines.sweep import train_once  # imports Ray Tune: only when sweeping
+
+    movement, _ = loop_configs(params)
+    out = train_once("train_evaluator_movement", MOVEMENT, movement, params["ray"],
+                     work_dir / "train_evaluator_movement", storage)
+    return {"movement_dir": str(out.resolve())}
+
+
+def sweep_target(params: dict[str, Any]) -> SweepTarget:
+    """``python -m stages.sweep train_evaluator``: trials vary the matching run on one movement encoder."""
+    from pipelines.sweep import SweepTarget  # imports Ray Tune: only when sweeping
+
+    return SweepTarget(stage="train_evaluator", spec=MATCHING, loop_config=matching_loop_config,
+                       prerequisite=movement_prerequisite)
 
 
 def main(argv: Sequence[str] | None = None) -> None:
