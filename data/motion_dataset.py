@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from torch.utils.data import Dataset
+from torch.utils.data import Dataset, default_collate
 
 from data.store import read_split
 
@@ -22,7 +22,7 @@ class MotionTextDataset(Dataset):
 
     Each element is a dict of ``motion`` (P, D) float32 normalised with ``mean``/``std`` and
     zero past ``length``; ``length`` (int64); ``text`` (E,) pooled caption embedding; ``index``.
-    P is ``max_frames`` (every batch has the same shape).
+    P is ``max_frames``; :func:`collate_trimmed` cuts a batch to its longest item.
     """
 
     def __init__(self, store_dir: str | Path, split: str, mean: np.ndarray, std: np.ndarray, max_frames: int) -> None:
@@ -36,16 +36,33 @@ class MotionTextDataset(Dataset):
     def __len__(self) -> int:
         return len(self.items)
 
+    def window(self, index: int, start: int = 0) -> tuple[np.ndarray, int]:
+        """Item ``index`` from frame ``start``: normalised (P, D) zero-padded motion and its length."""
+        item = self.items[index]
+        length = min(item.length - start, self.max_frames)
+        motion = np.zeros((self.max_frames, item.features.shape[1]), np.float32)
+        motion[:length] = (item.features[start : start + length] - self.mean) / self.std
+        return motion, length
+
     def __getitem__(self, index: int) -> dict[str, torch.Tensor]:
         item = self.items[index]
         caption = int(torch.randint(0, len(item.captions), ()).item())
-        length = min(item.length, self.max_frames)
-        start = int(torch.randint(0, item.length - length + 1, ()).item())
-        motion = np.zeros((self.max_frames, item.features.shape[1]), np.float32)
-        motion[:length] = (item.features[start : start + length] - self.mean) / self.std
+        start = int(torch.randint(0, max(0, item.length - self.max_frames) + 1, ()).item())
+        motion, length = self.window(index, start)
         return {
             "motion": torch.from_numpy(motion),
             "length": torch.tensor(length),
             "text": torch.from_numpy(item.text_pooled[caption].astype(np.float32)),
             "index": torch.tensor(index),
         }
+
+
+def collate_trimmed(items: list[dict[str, torch.Tensor]]) -> dict[str, torch.Tensor]:
+    """Stack items and cut ``motion`` (B, P, D) to (B, max(length), D).
+
+    Only padding is removed, and every model masks padded frames, so the result is the same as on
+    the full padding, computed on fewer frames (mean length instead of ``max_frames``).
+    """
+    batch = default_collate(items)
+    batch["motion"] = batch["motion"][:, : int(batch["length"].max())]
+    return batch

@@ -17,7 +17,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from data.motion_dataset import MotionTextDataset
+from data.motion_dataset import MotionTextDataset, collate_trimmed
 from models.vae import MotionVAE, MotionVAEConfig, vae_loss
 from pipelines.checkpoint import load_final_model
 from pipelines.config import REPO_ROOT, load_params
@@ -47,7 +47,7 @@ def step(batch: dict, ctx: StepContext) -> dict[str, torch.Tensor]:
             "joint": losses["joint"].detach(), "kl": losses["kl"].detach()}
 
 
-SPEC = TrainSpec(build=build, dataset=dataset, step=step)
+SPEC = TrainSpec(build=build, dataset=dataset, step=step, collate=collate_trimmed)
 
 
 def loop_config(params: dict[str, Any]) -> dict[str, Any]:

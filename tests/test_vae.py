@@ -204,3 +204,21 @@ def test_tiny_vae_overfits_eight_motions(stats: tuple[torch.Tensor, ...]) -> Non
         opt.step()
         losses.append(loss.item())
     assert np.mean(losses[-5:]) < losses[0] / 5, (losses[0], losses[-5:])
+
+
+def test_trimmed_batches_give_the_padded_batch_loss(stats: tuple[torch.Tensor, ...]) -> None:
+    """collate_trimmed only removes padding: the masked VAE loss is the same on the trimmed batch."""
+    from data.motion_dataset import collate_trimmed
+
+    mean, std = stats
+    lengths = torch.tensor([9, 5, 12])
+    x = _smooth_motions(3, 20, lengths)
+    items = [{"motion": x[b], "length": lengths[b], "index": torch.tensor(b)} for b in range(3)]
+    batch = collate_trimmed(items)
+    assert batch["motion"].shape == (3, 12, D)
+    torch.testing.assert_close(batch["motion"], x[:, :12])
+    vae = _tiny(dropout=0.0).eval()
+    full = vae_loss(vae, x, lengths, mean, std, JOINTS, generator=_gen(1))
+    trimmed = vae_loss(vae, batch["motion"], batch["length"], mean, std, JOINTS, generator=_gen(1))
+    for key in ("feature", "joint", "kl"):
+        torch.testing.assert_close(trimmed[key], full[key], rtol=1e-5, atol=1e-6)
