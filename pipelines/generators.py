@@ -129,7 +129,7 @@ class VAEReconstruction:
 def encode_prompts(texts: Sequence[str], features_dir: Path) -> TextBatch:
     """Prompts encoded by the same frozen text encoder the feature store was built with."""
     encoder_meta = json.loads((Path(features_dir) / "meta.json").read_text())["text_encoder"]
-    path = encoder_meta["path"] if encoder_meta["name"] != "minilm" else None
+    path = encoder_meta["path"]  # None: the encoder packaged in the environment
     encoder = build_text_encoder(encoder_meta["name"], path=path, max_length=encoder_meta["max_length"])
     enc = encoder.encode(list(texts))
     return TextBatch(list(texts), enc.pooled, [enc.tokens[k][enc.mask[k]] for k in range(len(texts))])

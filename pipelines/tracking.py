@@ -146,7 +146,10 @@ def plot_history_png(path: Path, history: Sequence[Mapping[str, Any]], title: st
 
 
 def default_wandb_dir(storage: str) -> str | None:
-    """``$WANDB_DIR`` if set, else ``<storage>/wandb`` for a local storage path."""
+    """W&B's ``dir``: ``$WANDB_DIR`` if set, else the local storage path (W&B adds ``wandb/`` under it).
+
+    Runs land in ``<storage>/wandb/offline-run-*``; a remote storage URI gives None (W&B's default).
+    """
     if os.environ.get("WANDB_DIR"):
         return os.environ["WANDB_DIR"]
-    return None if "://" in storage else str(Path(storage) / "wandb")
+    return None if "://" in storage else storage

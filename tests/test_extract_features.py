@@ -57,6 +57,7 @@ def test_store_holds_reference_features_spans_and_text(dataset, tmp_path):
     assert meta["counts"]["train"]["clips"] == 6 and meta["counts"]["train"]["items"] == 7
     assert meta["counts"]["test"]["captions"] == 4
     assert meta["text_encoder"]["name"] == "minilm"
+    assert meta["text_encoder"]["path"] is None, "the packaged encoder must not leave a machine path in artefacts"
 
     train = {item.item_id: item for item in read_split(out / "train.parquet")}
     joints = _yaw(np.load(FIXTURE)[5:], 0.7).astype(np.float32)

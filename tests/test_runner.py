@@ -37,6 +37,7 @@ from pipelines.runner import (
     run_training,
 )
 from pipelines.schedules import EMA, CosineWarmup
+from pipelines.tracking import default_wandb_dir
 
 # Ray workers cannot import this test module (pytest puts tests/ on sys.path only here):
 # ship its functions by value.
@@ -165,6 +166,15 @@ def test_gpu_decision_never_hangs() -> None:
         decide_use_gpu(True, 2, {"GPU": 1})
     with pytest.raises(ValueError, match="unknown ray option"):
         RayOptions.from_dict({"num_worker": 1})
+
+
+def test_wandb_runs_go_under_the_ray_storage(monkeypatch: pytest.MonkeyPatch) -> None:
+    """W&B adds ``wandb/`` to its dir: runs land in ``<storage>/wandb/``; $WANDB_DIR wins; URIs use W&B's own."""
+    monkeypatch.delenv("WANDB_DIR", raising=False)
+    assert default_wandb_dir("/repo/.ray_storage") == "/repo/.ray_storage"
+    assert default_wandb_dir("s3://bucket/runs") is None
+    monkeypatch.setenv("WANDB_DIR", "/elsewhere")
+    assert default_wandb_dir("/repo/.ray_storage") == "/elsewhere"
 
 
 def test_cosine_warmup_and_ema() -> None:
