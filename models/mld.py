@@ -33,8 +33,8 @@ Sampling: DDIM (50 steps, eta 0, MLD's ``leading`` grid with ``steps_offset=1`` 
 Latent scale: latent diffusion (LDM) trains on ``z / s`` with s ~ the std of the training latents
 (Stable Diffusion's 0.18215 is 1 / s). MLD does *not* rescale (its VAE scale factor is 1.0, the KL
 keeps latents near unit variance), so ``MLDConfig.latent_scale`` defaults to 1.0. Convention here:
-``latent_scale`` is s, the std (:func:`latent_std`); :func:`encode_latents` returns ``z / s`` (the
-diffusion space, which :func:`mld_loss` expects) and :func:`sample_mld` decodes ``s * z``.
+``latent_scale`` is s, the std (:func:`latent_std`); :func:`mld_loss` expects ``z / s`` (the diffusion
+space) and :func:`sample_mld` decodes ``s * z``.
 """
 
 from __future__ import annotations
@@ -274,26 +274,6 @@ def _eval_mode(*modules: nn.Module) -> Iterator[None]:
     finally:
         for m, flag in zip(modules, flags, strict=True):
             m.train(flag)
-
-
-@torch.no_grad()
-def encode_latents(
-    vae: MotionVAE,
-    features: Tensor,
-    lengths: Tensor | Sequence[int],
-    latent_scale: float = 1.0,
-    generator: torch.Generator | None = None,
-    *,
-    sample: bool = True,
-) -> Tensor:
-    """Diffusion training latents ``z / latent_scale`` (B, L, C) of normalised features (B, T, D).
-
-    The VAE runs frozen (no grad, eval mode: no dropout) but z is *sampled* from q(z | x) as MLD does
-    (``sample=False`` gives the mean).
-    """
-    with _eval_mode(vae):
-        z, _ = vae.encode(features, lengths, generator, sample=sample)
-    return z / latent_scale
 
 
 def latent_std(latents: Tensor) -> float:

@@ -5,6 +5,12 @@ one runner: each step encodes the batch with the frozen VAE (a *sampled* latent,
 draws t ~ U{0..T-1} on the scaled_linear schedule (0.00085-0.012, 1000 steps), drops the text
 with probability 0.1 and regresses epsilon. Writes ``artifacts/train_mld/``.
 
+Latent cache (exact, and an order of magnitude cheaper): the frozen VAE's encoder is deterministic,
+so the stage encodes every training item once into its posterior (mu, log sigma^2) and each step
+samples ``z = mu + sigma * eps`` afresh, the same distribution as encoding every batch. Items longer
+than ``max_frames`` are encoded over their first ``max_frames`` frames (the motion loader would draw
+a random window; none of the embedded dataset's items is that long).
+
 Latent scale (documented choice): with ``normalize_latents`` the driver measures the std of the
 training latents once and diffusion runs on ``z / std`` (as latent diffusion models do); MLD itself
 uses 1.0 (the ``paper`` profile sets ``normalize_latents: false``).
@@ -20,11 +26,12 @@ from typing import Any
 
 import numpy as np
 import torch
-from torch.utils.data import DataLoader
+from torch.utils.data import Dataset
 
 from data.motion_dataset import MotionTextDataset
 from models.diffusion import NoiseSchedule
-from models.mld import MLDConfig, MLDDenoiser, encode_latents, latent_std, mld_loss
+from models.mld import MLDConfig, MLDDenoiser, latent_std, mld_loss
+from models.vae import LatentDistribution, MotionVAE
 from pipelines.checkpoint import load_final_model
 from pipelines.config import REPO_ROOT, load_params
 from pipelines.runner import Components, StepContext, TrainSpec, run_training
@@ -39,25 +46,53 @@ def schedule_of(config: dict) -> NoiseSchedule:
                                    beta_start=config["beta_start"], beta_end=config["beta_end"])
 
 
-def dataset(config: dict) -> MotionTextDataset:
-    return MotionTextDataset(config["features_dir"], "train", config["mean"], config["std"], config["max_frames"])
+class LatentTextDataset(Dataset):
+    """Training items as frozen-VAE posteriors: ``mu``/``logvar`` (L, C) per item, plus a random caption.
+
+    Elements: ``mu``, ``logvar`` (L, C) float32, ``text`` (E,) pooled embedding of a caption drawn
+    with the process-global torch RNG (as :class:`MotionTextDataset` draws it), ``index``.
+    """
+
+    def __init__(self, motions: MotionTextDataset, vae: MotionVAE, batch_size: int = 64) -> None:
+        self.motions = motions
+        mu, logvar = [], []
+        with torch.no_grad():
+            for first in range(0, len(motions), batch_size):
+                windows = [motions.window(k) for k in range(first, min(first + batch_size, len(motions)))]
+                x = torch.from_numpy(np.stack([w[0] for w in windows]))
+                lengths = torch.tensor([w[1] for w in windows])
+                dist = vae.eval().encode_distribution(x[:, : int(lengths.max())], lengths)
+                mu.append(dist.mu)
+                logvar.append(dist.logvar)
+        self.mu, self.logvar = torch.cat(mu), torch.cat(logvar)
+
+    def __len__(self) -> int:
+        return len(self.motions)
+
+    def __getitem__(self, index: int) -> dict[str, torch.Tensor]:
+        item = self.motions.items[index]
+        caption = int(torch.randint(0, len(item.captions), ()).item())
+        return {"mu": self.mu[index], "logvar": self.logvar[index], "index": torch.tensor(index),
+                "text": torch.from_numpy(item.text_pooled[caption].astype(np.float32))}
+
+
+def dataset(config: dict) -> LatentTextDataset:
+    motions = MotionTextDataset(config["features_dir"], "train", config["mean"], config["std"], config["max_frames"])
+    return LatentTextDataset(motions, load_vae(Path(config["vae_dir"])))
 
 
 def build(config: dict) -> Components:
     denoiser = MLDDenoiser(MLDConfig(**config["model"]))
     opt = torch.optim.AdamW(denoiser.parameters(), lr=config["lr"], weight_decay=config["weight_decay"])
-    vae = load_vae(Path(config["vae_dir"]))
-    for p in vae.parameters():
-        p.requires_grad_(False)
     return Components(models={"denoiser": denoiser}, optimizers={"adamw": opt}, ema=config["ema"],
-                      frozen={"vae": vae, "schedule": schedule_of(config)})
+                      frozen={"schedule": schedule_of(config)})
 
 
 def step(batch: dict, ctx: StepContext) -> dict[str, torch.Tensor]:
-    schedule = ctx.frozen["schedule"]
-    scale = ctx.config["model"]["latent_scale"]
-    z0 = encode_latents(ctx.frozen["vae"], batch["motion"], batch["length"], latent_scale=scale)
-    losses = mld_loss(ctx.models["denoiser"], schedule, z0, batch["text"], p_uncond=ctx.config["p_uncond"])
+    """z0 = (mu + sigma * eps) / s with a fresh eps (MLD samples the posterior), then MLD's eps loss."""
+    z0 = LatentDistribution(batch["mu"], batch["logvar"]).sample() / ctx.config["model"]["latent_scale"]
+    losses = mld_loss(ctx.models["denoiser"], ctx.frozen["schedule"], z0, batch["text"],
+                      p_uncond=ctx.config["p_uncond"])
     ctx.update(losses["total"])
     return {"loss": losses["total"].detach()}
 
@@ -65,17 +100,10 @@ def step(batch: dict, ctx: StepContext) -> dict[str, torch.Tensor]:
 SPEC = TrainSpec(build=build, dataset=dataset, step=step)
 
 
-def measure_latent_std(vae_dir: Path, data: MotionTextDataset, batches: int = 8, seed: int = 0) -> float:
-    """Std of sampled training latents over a few batches (the LDM scale factor)."""
-    torch.manual_seed(seed)
-    vae = load_vae(vae_dir)
-    loader = DataLoader(data, batch_size=64, shuffle=True, generator=torch.Generator().manual_seed(seed))
-    latents = []
-    for k, batch in enumerate(loader):
-        if k == batches:
-            break
-        latents.append(encode_latents(vae, batch["motion"], batch["length"]))
-    return latent_std(torch.cat(latents))
+def measure_latent_std(data: LatentTextDataset, seed: int = 0) -> float:
+    """Std of one sampled latent per training item (the LDM scale factor s)."""
+    z = LatentDistribution(data.mu, data.logvar).sample(torch.Generator().manual_seed(seed))
+    return latent_std(z)
 
 
 def loop_config(params: dict[str, Any]) -> dict[str, Any]:
@@ -97,7 +125,7 @@ def loop_config(params: dict[str, Any]) -> dict[str, Any]:
     }
     scale = 1.0
     if cfg["normalize_latents"]:
-        scale = measure_latent_std(vae_dir, dataset(config), seed=cfg["seed"])
+        scale = measure_latent_std(dataset(config), seed=cfg["seed"])
     config["model"]["latent_scale"] = round(float(scale), 6)
     return config
 

@@ -49,6 +49,23 @@ def test_vae_and_mld_write_resumable_models(trained):
     assert schedule.num_steps == 1000
 
 
+def test_latent_cache_is_each_items_own_posterior(trained):
+    """The cached (mu, logvar) of an item equal encoding it alone, unpadded; captions are the item's own."""
+    import torch
+
+    config = train_mld.loop_config(trained)
+    assert config["model"]["latent_scale"] > 0
+    data = train_mld.dataset(config)
+    vae = train_vae.load_vae(Path(config["vae_dir"]))
+    for k in (0, len(data) // 2, len(data) - 1):
+        x, n = data.motions.window(k)
+        dist = vae.encode_distribution(torch.from_numpy(x[None, :n]), [n])
+        torch.testing.assert_close(data.mu[k], dist.mu[0], rtol=1e-4, atol=1e-5)
+        torch.testing.assert_close(data.logvar[k], dist.logvar[0], rtol=1e-4, atol=1e-5)
+        text = data[k]["text"].numpy()
+        assert np.isclose(data.motions.items[k].text_pooled, text).all(axis=1).any()
+
+
 def test_mld_generator_is_seeded_and_zero_padded(trained):
     artifacts = Path(trained["paths"]["artifacts"])
     denoiser, schedule, _ = train_mld.load_mld(artifacts / "train_mld")
