@@ -304,7 +304,7 @@ def sample_mld(
     ``z_T ~ N(0, I)`` (B, L, C) from ``generator`` (or ``x_T``); DDIM (:func:`models.diffusion.ddim_sample`,
     ``num_steps`` on MLD's grid unless ``timesteps``/``timestep_spacing`` say otherwise, ``eta``) on the
     guided epsilon ``eps_u + guidance (eps_c - eps_u)`` (one batched call on ``[null; text]``; guidance 1
-    skips the unconditional pass); then ``vae.decode(latent_scale * z_0, lengths)`` with
+    skips the unconditional pass); then ``vae.decode_by_length(latent_scale * z_0, lengths)`` with
     ``T = num_frames`` or ``max(lengths)``, padded frames 0. ``latent_scale`` None uses the denoiser's
     config. Both networks run in eval mode under no_grad (their modes are restored). With eta > 0 the
     generator must live on the networks' device.
@@ -325,4 +325,4 @@ def sample_mld(
             guided, shape, schedule, num_steps, eta, generator, cfg.prediction_type,
             cond={"text_emb": text_emb}, x_T=x_T, timestep_spacing=timestep_spacing, timesteps=timesteps,
         )
-        return vae.decode(z0 * scale, lengths, num_frames)
+        return vae.decode_by_length(z0 * scale, lengths, num_frames)

@@ -185,6 +185,23 @@ class MotionVAE(nn.Module):
             out = self.decoder(x, key_padding_mask=pad)[:, n:]
         return torch.where(valid[..., None], self.final_layer(out), 0.0)  # where, not *: no NaN can leak
 
+    def decode_by_length(self, z: Tensor, lengths: Tensor | Sequence[int], num_frames: int | None = None,
+                         chunk_size: int = 64) -> Tensor:
+        """:meth:`decode` over chunks of ``chunk_size`` items of similar length, each cut to its longest.
+
+        z (B, L, C), lengths (B,) -> (B, T, D) as :meth:`decode` (padded frames exactly 0). Valid frames
+        only attend to valid frames, so the result equals one padded batch up to float rounding, while
+        the quadratic self-attention runs on ~mean instead of max length (inference: evaluation and
+        sampling of large batches).
+        """
+        lengths = torch.as_tensor(lengths, device=z.device)
+        t = int(lengths.max()) if num_frames is None else int(num_frames)
+        out = z.new_zeros(z.shape[0], t, self.config.feature_dim)
+        for idx in torch.argsort(lengths, stable=True).split(chunk_size):
+            longest = int(lengths[idx].max())
+            out[idx, :longest] = self.decode(z[idx], lengths[idx], longest)
+        return out
+
     def forward(
         self, features: Tensor, lengths: Tensor | Sequence[int], generator: torch.Generator | None = None
     ) -> tuple[Tensor, LatentDistribution]:

@@ -120,10 +120,15 @@ class VAEReconstruction:
         self.vae = vae.eval()
 
     @torch.inference_mode()
-    def reconstruct(self, motions: np.ndarray, lengths: np.ndarray) -> np.ndarray:
+    def reconstruct(self, motions: np.ndarray, lengths: np.ndarray, chunk_size: int = 64) -> np.ndarray:
+        """Normalised motions (B, T, D) -> reconstructions (B, T, D), in chunks of similar length."""
         x, lengths_t = torch.from_numpy(motions.astype(np.float32)), torch.as_tensor(lengths)
-        z, _ = self.vae.encode(x, lengths_t, sample=False)
-        return self.vae.decode(z, lengths_t, num_frames=x.shape[1]).numpy()
+        out = torch.zeros_like(x)
+        for idx in torch.argsort(lengths_t, stable=True).split(chunk_size):
+            longest = int(lengths_t[idx].max())
+            z, _ = self.vae.encode(x[idx, :longest], lengths_t[idx], sample=False)
+            out[idx, :longest] = self.vae.decode(z, lengths_t[idx], longest)
+        return out.numpy()
 
 
 def encode_prompts(texts: Sequence[str], features_dir: Path) -> TextBatch:

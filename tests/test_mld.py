@@ -258,8 +258,8 @@ def test_sample_mld_guidance_and_latent_scale(schedule: NoiseSchedule) -> None:
     assert not torch.allclose(guided, out) and not torch.allclose(guided, uncond)
     # the latent scale multiplies the sampled latent before decoding (config value or argument)
     seen: list[torch.Tensor] = []
-    decode = vae.decode
-    vae.decode = lambda z, lengths, num_frames=None: seen.append(z) or decode(z, lengths, num_frames)  # type: ignore[method-assign]
+    decode = vae.decode_by_length
+    vae.decode_by_length = lambda z, lengths, num_frames=None: seen.append(z) or decode(z, lengths, num_frames)  # type: ignore[method-assign]
     sample_mld(net, vae, schedule, text, lengths, num_steps=4, guidance=1.0, x_T=x_T, latent_scale=2.5)
     scaled_net = _denoiser(latent_scale=0.5).eval()
     sample_mld(scaled_net, vae, schedule, text, lengths, num_steps=4, guidance=1.0, x_T=x_T)

@@ -114,6 +114,19 @@ def test_decode_zeroes_padded_frames() -> None:
     assert bool((out[valid].abs().sum(-1) > 0).all())
 
 
+@pytest.mark.parametrize("decoder_arch", ["cross_attention", "self_attention"])
+def test_decode_by_length_equals_one_padded_batch(decoder_arch: str) -> None:
+    """Chunks of similar length (each cut to its longest) decode exactly what one padded batch does."""
+    vae = _tiny(decoder_arch=decoder_arch).eval()
+    lengths = torch.tensor([30, 4, 17, 9, 30, 1, 22])
+    z = torch.randn(7, 2, 8, generator=_gen(4))
+    full = vae.decode(z, lengths, num_frames=33)
+    chunked = vae.decode_by_length(z, lengths, num_frames=33, chunk_size=3)
+    torch.testing.assert_close(chunked, full, atol=1e-5, rtol=0)
+    assert bool((chunked[torch.arange(33)[None, :] >= lengths[:, None]] == 0).all())
+    assert vae.decode_by_length(z, lengths).shape == (7, 30, D)
+
+
 def test_reparameterisation_uses_the_generator() -> None:
     vae = _tiny().eval()
     x, lengths = torch.randn(2, 6, D), torch.tensor([6, 4])
