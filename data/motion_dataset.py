@@ -36,6 +36,12 @@ class MotionTextDataset(Dataset):
     def __len__(self) -> int:
         return len(self.items)
 
+    @property
+    def lengths(self) -> np.ndarray:
+        """(N,) int64 frames of each item as served (at most ``max_frames``): what a length-bucketed
+        batch order (the runner's ``length_buckets``) sorts by."""
+        return np.array([min(item.length, self.max_frames) for item in self.items], dtype=np.int64)
+
     def window(self, index: int, start: int = 0) -> tuple[np.ndarray, int]:
         """Item ``index`` from frame ``start``: normalised (P, D) zero-padded motion and its length."""
         item = self.items[index]

@@ -24,7 +24,7 @@ every rank, loss history, start steps of every attempt).
 Runner keys read from the loop config (everything else is the stage's): ``seed``,
 ``batch_size`` (per worker), ``max_steps``, ``grad_clip`` (0 = off), ``lr_schedule``
 ("cosine" | "constant"), ``warmup_steps``, ``min_lr_ratio``, ``log_every``,
-``num_data_workers``. Ray keys: see :class:`RayOptions`.
+``num_data_workers``, ``length_buckets``. Ray keys: see :class:`RayOptions`.
 
 Runs are named ``<stage>-<hash of loop config and worker count>``: the same params resume
 a killed run from Ray storage, changed params start afresh. ``ray.train.report`` is
@@ -47,6 +47,7 @@ from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
 from typing import Any, Protocol
 
+import numpy as np
 import torch
 from torch import nn
 from torch.optim import Optimizer
@@ -150,6 +151,7 @@ class LoopSettings:
     min_lr_ratio: float = 0.0
     log_every: int = 50
     num_data_workers: int = 0
+    length_buckets: int = 0
 
     @classmethod
     def from_config(cls, config: Mapping[str, Any]) -> LoopSettings:
@@ -436,13 +438,46 @@ def _restore(run: _Run, session: Session, s: LoopSettings) -> None:
             ckpt.seed_everything(rank_seed(s.seed, session.rank) + run.pos.step)
 
 
+def bucket_by_length(indices: Sequence[int], lengths: np.ndarray, batch_size: int, pool_batches: int,
+                     seed: int) -> list[int]:
+    """One epoch's item order in which every batch holds items of similar length.
+
+    The epoch's full batches (``len(indices) // batch_size`` of them, in the sampler's random
+    order) are cut into pools of ``pool_batches`` batches; each pool is sorted by length (stable)
+    and cut back into batches, and the batches of the whole epoch are then shuffled with ``seed``.
+    Every batch is still a random draw from a random pool, but its padding (and so the cost of a
+    step on a length-trimmed batch) shrinks. The same items as the full batches of ``indices``,
+    a pure function of its arguments (exact resume holds); the incomplete last batch is dropped,
+    as ``drop_last`` does.
+    """
+    if pool_batches < 1:
+        raise ValueError(f"length_buckets must be >= 1 batches per pool, got {pool_batches}")
+    n = len(indices) // batch_size * batch_size
+    items = np.asarray(indices[:n], dtype=np.int64)
+    batches: list[np.ndarray] = []
+    for start in range(0, n, pool_batches * batch_size):
+        pool = items[start:start + pool_batches * batch_size]
+        pool = pool[np.argsort(lengths[pool], kind="stable")]
+        batches.extend(pool.reshape(-1, batch_size))
+    order = np.random.default_rng(seed).permutation(len(batches))
+    return [int(i) for b in order for i in batches[b]]
+
+
 def _epoch_loader(dataset: Dataset, spec: TrainSpec, s: LoopSettings, session: Session,
                   pos: Position) -> DataLoader:
     """The rest of epoch ``pos.epoch`` from batch ``pos.batch`` on, in its fixed order."""
     sampler = DistributedSampler(dataset, num_replicas=session.world_size, rank=session.rank,
                                  shuffle=True, seed=s.seed, drop_last=True)
     sampler.set_epoch(pos.epoch)
-    indices = list(sampler)[pos.batch * s.batch_size:]
+    indices = list(sampler)
+    if s.length_buckets:
+        lengths = getattr(dataset, "lengths", None)
+        if lengths is None:
+            raise ValueError(f"length_buckets needs a dataset with a `lengths` array; "
+                             f"{type(dataset).__name__} has none")
+        indices = bucket_by_length(indices, np.asarray(lengths), s.batch_size, s.length_buckets,
+                                   seed=(s.seed * RANK_SEED_STRIDE + pos.epoch) * 1024 + session.rank)
+    indices = indices[pos.batch * s.batch_size:]
     generator = torch.Generator().manual_seed(
         (s.seed * RANK_SEED_STRIDE + pos.epoch) * 1024 + session.rank)  # DataLoader worker seeds
     return DataLoader(dataset, batch_size=s.batch_size, sampler=indices, drop_last=True,

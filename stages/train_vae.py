@@ -24,7 +24,7 @@ from pipelines.config import REPO_ROOT, load_params
 from pipelines.runner import Components, StepContext, TrainSpec, run_training
 
 RUNNER_KEYS = ("seed", "batch_size", "max_steps", "grad_clip", "log_every", "lr_schedule", "warmup_steps",
-               "min_lr_ratio")
+               "min_lr_ratio", "length_buckets")
 
 
 def dataset(config: dict) -> MotionTextDataset:

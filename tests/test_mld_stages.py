@@ -49,6 +49,15 @@ def test_vae_and_mld_write_resumable_models(trained):
     assert schedule.num_steps == 1000
 
 
+def test_vae_dataset_lengths_are_the_served_lengths(trained):
+    """``lengths`` (what the VAE's length-bucketed batch order sorts by) match what items serve."""
+    data = train_vae.dataset(train_vae.loop_config(trained))
+    assert trained["train_vae"]["length_buckets"] > 0
+    served = [int(data[k]["length"]) for k in range(len(data))]
+    assert data.lengths.tolist() == served
+    assert max(served) == data.max_frames == 64 and min(served) < 64  # long items cropped, short ones not
+
+
 def test_latent_cache_is_each_items_own_posterior(trained):
     """The cached (mu, logvar) of an item equal encoding it alone, unpadded; captions are the item's own."""
     import torch

@@ -16,8 +16,10 @@ import sys
 import textwrap
 import time
 from pathlib import Path
+from types import SimpleNamespace
 from typing import Any
 
+import numpy as np
 import psutil
 import pytest
 import ray.cloudpickle
@@ -28,10 +30,14 @@ from torch.utils.data import TensorDataset
 from pipelines.checkpoint import STATE_FILE, load_final_model, rng_file
 from pipelines.runner import (
     Components,
+    LoopSettings,
+    Position,
     RayOptions,
     RunResult,
     StepContext,
     TrainSpec,
+    _epoch_loader,
+    bucket_by_length,
     decide_use_gpu,
     make_run_name,
     run_training,
@@ -146,6 +152,48 @@ def test_outputs(reference: RunResult) -> None:
     assert model.eval()(torch.zeros(2, 8)).shape == (2, 1)
     assert payload["step"] == BASE["max_steps"] and json.loads((out / "run.json").read_text())["attempts"] == [0]
     assert not list(out.parent.glob(".out.*")), "temporary folders left behind"
+
+
+def _batch_spread(batches: np.ndarray, lengths: np.ndarray) -> float:
+    """Mean padding per item of length-trimmed batches (longest minus mean length)."""
+    return float(np.mean([lengths[b].max() - lengths[b].mean() for b in batches]))
+
+
+def test_length_buckets_group_similar_lengths_and_keep_the_epochs_items() -> None:
+    rng = np.random.default_rng(0)
+    lengths = rng.integers(40, 197, size=300)
+    indices = [int(i) for i in rng.permutation(300)]
+    n = 300 // 16 * 16
+    order = bucket_by_length(indices, lengths, batch_size=16, pool_batches=4, seed=1)
+    assert sorted(order) == sorted(indices[:n])  # the same items as the sampler's full batches
+    batches = np.array(order).reshape(-1, 16)
+    pools = [set(indices[i:i + 64]) for i in range(0, n, 64)]
+    assert all(any(set(b.tolist()) <= pool for pool in pools) for b in batches)  # each from one pool
+    random_batches = np.array(indices[:n]).reshape(-1, 16)
+    assert _batch_spread(batches, lengths) < 0.4 * _batch_spread(random_batches, lengths)
+    assert order == bucket_by_length(indices, lengths, 16, 4, seed=1)
+    assert order != bucket_by_length(indices, lengths, 16, 4, seed=2)
+    # one batch per pool: exactly the sampler's batches, each sorted, in a shuffled order
+    single = np.array(bucket_by_length(indices, lengths, 16, 1, seed=1)).reshape(-1, 16)
+    assert sorted(sorted(b) for b in single.tolist()) == sorted(sorted(b) for b in random_batches.tolist())
+    with pytest.raises(ValueError, match="length_buckets"):
+        bucket_by_length(indices, lengths, 16, 0, seed=1)
+
+
+def test_bucketed_epoch_resumes_mid_epoch_in_the_same_order() -> None:
+    """A loader restarted at batch k of an epoch serves exactly batches k.. of the whole epoch."""
+    data = dataset({})
+    data.lengths = np.random.default_rng(5).integers(1, 100, size=len(data))
+    settings = LoopSettings(seed=3, batch_size=16, length_buckets=4)
+    session = SimpleNamespace(rank=0, world_size=1)
+    full = list(_epoch_loader(data, SPEC, settings, session, Position(epoch=2, batch=0)))
+    tail = list(_epoch_loader(data, SPEC, settings, session, Position(epoch=2, batch=5)))
+    assert len(full) == 16 and len(tail) == 11
+    assert all(torch.equal(a[0], b[0]) for a, b in zip(full[5:], tail, strict=True))
+    other_epoch = list(_epoch_loader(data, SPEC, settings, session, Position(epoch=3, batch=0)))
+    assert not torch.equal(full[0][0], other_epoch[0][0])
+    with pytest.raises(ValueError, match="lengths"):
+        _epoch_loader(dataset({}), SPEC, settings, session, Position())
 
 
 def test_changed_params_give_a_fresh_run_name() -> None:
