@@ -469,17 +469,16 @@ def _epoch_loader(dataset: Dataset, spec: TrainSpec, s: LoopSettings, session: S
     sampler = DistributedSampler(dataset, num_replicas=session.world_size, rank=session.rank,
                                  shuffle=True, seed=s.seed, drop_last=True)
     sampler.set_epoch(pos.epoch)
+    epoch_seed = (s.seed * RANK_SEED_STRIDE + pos.epoch) * 1024 + session.rank
     indices = list(sampler)
     if s.length_buckets:
         lengths = getattr(dataset, "lengths", None)
         if lengths is None:
             raise ValueError(f"length_buckets needs a dataset with a `lengths` array; "
                              f"{type(dataset).__name__} has none")
-        indices = bucket_by_length(indices, np.asarray(lengths), s.batch_size, s.length_buckets,
-                                   seed=(s.seed * RANK_SEED_STRIDE + pos.epoch) * 1024 + session.rank)
+        indices = bucket_by_length(indices, np.asarray(lengths), s.batch_size, s.length_buckets, epoch_seed)
     indices = indices[pos.batch * s.batch_size:]
-    generator = torch.Generator().manual_seed(
-        (s.seed * RANK_SEED_STRIDE + pos.epoch) * 1024 + session.rank)  # DataLoader worker seeds
+    generator = torch.Generator().manual_seed(epoch_seed)  # DataLoader worker seeds
     return DataLoader(dataset, batch_size=s.batch_size, sampler=indices, drop_last=True,
                       num_workers=s.num_data_workers, collate_fn=spec.collate, generator=generator)
 
