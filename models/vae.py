@@ -32,7 +32,7 @@ unmasked); the KL is the mean over all latent elements (MLD).
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any, Literal
 
@@ -197,8 +197,7 @@ class MotionVAE(nn.Module):
         lengths = torch.as_tensor(lengths, device=z.device)
         t = int(lengths.max()) if num_frames is None else int(num_frames)
         out = z.new_zeros(z.shape[0], t, self.config.feature_dim)
-        for idx in torch.argsort(lengths, stable=True).split(chunk_size):
-            longest = int(lengths[idx].max())
+        for idx, longest in length_sorted_chunks(lengths, chunk_size):
             out[idx, :longest] = self.decode(z[idx], lengths[idx], longest)
         return out
 
@@ -213,6 +212,12 @@ class MotionVAE(nn.Module):
 # --------------------------------------------------------------------------------------------------
 # Losses
 # --------------------------------------------------------------------------------------------------
+
+
+def length_sorted_chunks(lengths: Tensor, chunk_size: int) -> Iterator[tuple[Tensor, int]]:
+    """(indices, longest length) of consecutive chunks of ``chunk_size`` items in length order."""
+    for idx in torch.argsort(lengths, stable=True).split(chunk_size):
+        yield idx, int(lengths[idx].max())
 
 
 def masked_smooth_l1(pred: Tensor, target: Tensor, valid: Tensor, beta: float = 1.0) -> Tensor:

@@ -26,7 +26,7 @@ from data.text_encoders import build_text_encoder
 from models.diffusion import NoiseSchedule
 from models.generator import TextBatch
 from models.mld import MLDDenoiser, sample_mld
-from models.vae import MotionVAE
+from models.vae import MotionVAE, length_sorted_chunks
 
 
 def pad_motions(motions: Sequence[np.ndarray], lengths: np.ndarray) -> np.ndarray:
@@ -124,8 +124,7 @@ class VAEReconstruction:
         """Normalised motions (B, T, D) -> reconstructions (B, T, D), in chunks of similar length."""
         x, lengths_t = torch.from_numpy(motions.astype(np.float32)), torch.as_tensor(lengths)
         out = torch.zeros_like(x)
-        for idx in torch.argsort(lengths_t, stable=True).split(chunk_size):
-            longest = int(lengths_t[idx].max())
+        for idx, longest in length_sorted_chunks(lengths_t, chunk_size):
             z, _ = self.vae.encode(x[idx, :longest], lengths_t[idx], sample=False)
             out[idx, :longest] = self.vae.decode(z, lengths_t[idx], longest)
         return out.numpy()
