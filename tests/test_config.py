@@ -27,6 +27,20 @@ def test_group_choice_recomposes_conf():
     assert kit["paths"] == compose_params()["paths"]
 
 
+def test_paper_profile_is_mlds_published_architecture():
+    """`scale=paper` must not inherit the tiny profile's sizes (e.g. the tiny denoiser's width 256)."""
+    paper = compose_params(["scale=paper"])
+    vae, mld = paper["train_vae"], paper["train_mld"]
+    assert {k: vae["model"][k] for k in ("latent_tokens", "latent_dim", "hidden_dim", "layers", "ff_dim")} == {
+        "latent_tokens": 1, "latent_dim": 256, "hidden_dim": None, "layers": 9, "ff_dim": 1024}
+    # denoiser width = the VAE's latent_dim (no latent projections), MLD's 9 layers, ff 1024, 768-d time sinusoid
+    assert {k: mld["model"][k] for k in ("hidden_dim", "layers", "ff_dim", "time_freq_dim")} == {
+        "hidden_dim": None, "layers": 9, "ff_dim": 1024, "time_freq_dim": 768}
+    assert (mld["guidance"], mld["beta_schedule"], mld["num_train_timesteps"], mld["lr"]) == (
+        7.5, "scaled_linear", 1000, 1e-4)
+    assert vae["kl_weight"] == 1e-4 and vae["length_buckets"] == 0
+
+
 def test_dotted_override_parses_yaml_values_and_keeps_the_rest():
     params = {"data": {"on_error": "fail", "max_frames": 200}, "seed": 0}
     out = apply_overrides(params, ["data.on_error=skip", "data.max_frames=150", "seed=3"])
