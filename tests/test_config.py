@@ -28,7 +28,7 @@ def test_group_choice_recomposes_conf():
 
 
 def test_paper_profile_is_mlds_published_architecture():
-    """`scale=paper` must not inherit the tiny profile's sizes (e.g. the tiny denoiser's width 256)."""
+    """`scale=paper` must not inherit the tiny profile's sizes (e.g. the tiny denoiser's width 128)."""
     paper = compose_params(["scale=paper"])
     vae, mld = paper["train_vae"], paper["train_mld"]
     assert {k: vae["model"][k] for k in ("latent_tokens", "latent_dim", "hidden_dim", "layers", "ff_dim")} == {
