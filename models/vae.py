@@ -209,15 +209,15 @@ class MotionVAE(nn.Module):
         return self.decode(z, lengths, features.shape[1]), dist
 
 
-# --------------------------------------------------------------------------------------------------
-# Losses
-# --------------------------------------------------------------------------------------------------
-
-
 def length_sorted_chunks(lengths: Tensor, chunk_size: int) -> Iterator[tuple[Tensor, int]]:
     """(indices, longest length) of consecutive chunks of ``chunk_size`` items in length order."""
     for idx in torch.argsort(lengths, stable=True).split(chunk_size):
         yield idx, int(lengths[idx].max())
+
+
+# --------------------------------------------------------------------------------------------------
+# Losses
+# --------------------------------------------------------------------------------------------------
 
 
 def masked_smooth_l1(pred: Tensor, target: Tensor, valid: Tensor, beta: float = 1.0) -> Tensor:
