@@ -7,7 +7,8 @@ channels (``latent_dim``), h transformer width (``hidden_dim``, = C unless set).
 Encoder (MLD Sec. 3.1): frames are embedded ``Linear(D -> h)``; 2L learned *distribution tokens* are
 prepended, a positional encoding is added to ``[tokens; frames]`` and the skip transformer runs with a
 key-padding mask over the padded frames (the tokens are never masked). The first L outputs are mu,
-the next L log sigma^2 (through ``Linear(h -> C)`` when h != C, MotionLCM V2's ``force_pre_post_proj``).
+the next L log sigma^2 (through ``Linear(h -> C)`` when h != C, MotionLCM V2's ``force_pre_post_proj``;
+plus the constant ``logvar_offset``, 0 in MLD, see :class:`MotionVAEConfig`).
 ``z = mu + sigma * eps`` (reparameterisation). MLD trains the VAE *and* encodes the diffusion
 training set with sampled z, not mu.
 
@@ -55,6 +56,13 @@ class MotionVAEConfig:
     exist (MLD, MotionLCM V1: 1 x 256); MotionLCM V2 is ``latent_tokens=16, latent_dim=32,
     hidden_dim=256``. ``pos_encoding`` "sinusoidal" works for any length; "learned" is MLD's own
     (a (max_len, h) parameter, uniform init; MLD uses max_len 500).
+
+    ``logvar_offset`` is a constant added to the encoder's log sigma^2 (MLD: 0). MLD reads log sigma^2
+    straight off the encoder's final LayerNorm, so it starts near 0 (sigma ~ 1, as wide as the prior)
+    and the reconstruction loss narrows it only slowly: after the tiny profile's 3000 steps the median
+    sigma was still 0.90 against a spread of mu of 1.0, so the decoder trained on latents that were
+    mostly noise. A negative offset starts the posterior narrow (-6: sigma ~ 0.05 at init); the KL term
+    is unchanged and can widen it again. It is a reparameterisation, not a new parameter.
     """
 
     feature_dim: int = 263
@@ -70,6 +78,7 @@ class MotionVAEConfig:
     pos_encoding: PositionalEncodingKind = "sinusoidal"
     max_len: int = 512
     decoder_arch: DecoderArch = "cross_attention"
+    logvar_offset: float = 0.0
 
     @property
     def width(self) -> int:
@@ -146,7 +155,7 @@ class MotionVAE(nn.Module):
         x = torch.cat([self.dist_tokens[None].expand(b, -1, -1), self.skel_embedding(features)], dim=1)
         pad = torch.cat([valid.new_zeros(b, 2 * n), ~valid], dim=1)
         out = self.latent_out(self.encoder(self.encoder_pe(x), key_padding_mask=pad)[:, : 2 * n])
-        return LatentDistribution(out[:, :n], out[:, n:])
+        return LatentDistribution(out[:, :n], out[:, n:] + self.config.logvar_offset)
 
     def encode(
         self,

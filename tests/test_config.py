@@ -31,8 +31,9 @@ def test_paper_profile_is_mlds_published_architecture():
     """`scale=paper` must not inherit the tiny profile's sizes (e.g. the tiny denoiser's width 128)."""
     paper = compose_params(["scale=paper"])
     vae, mld = paper["train_vae"], paper["train_mld"]
-    assert {k: vae["model"][k] for k in ("latent_tokens", "latent_dim", "hidden_dim", "layers", "ff_dim")} == {
-        "latent_tokens": 1, "latent_dim": 256, "hidden_dim": None, "layers": 9, "ff_dim": 1024}
+    keys = ("latent_tokens", "latent_dim", "hidden_dim", "layers", "ff_dim", "logvar_offset")
+    assert {k: vae["model"][k] for k in keys} == {
+        "latent_tokens": 1, "latent_dim": 256, "hidden_dim": None, "layers": 9, "ff_dim": 1024, "logvar_offset": 0.0}
     # denoiser width = the VAE's latent_dim (no latent projections), MLD's 9 layers, ff 1024, 768-d time sinusoid
     assert {k: mld["model"][k] for k in ("hidden_dim", "layers", "ff_dim", "time_freq_dim")} == {
         "hidden_dim": None, "layers": 9, "ff_dim": 1024, "time_freq_dim": 768}

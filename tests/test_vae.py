@@ -139,6 +139,18 @@ def test_reparameterisation_uses_the_generator() -> None:
     torch.testing.assert_close(z_mean, dist.mu, atol=0, rtol=0)
 
 
+def test_logvar_offset_shifts_log_sigma2_only() -> None:
+    """The offset is a constant on log sigma^2 (same weights: mu equal, logvar - 6, sigma x e^-3), no parameter."""
+    mld, narrow = _tiny().eval(), _tiny(logvar_offset=-6.0).eval()
+    assert sum(p.numel() for p in mld.parameters()) == sum(p.numel() for p in narrow.parameters())
+    x, lengths = torch.randn(2, 6, D, generator=_gen(6)), torch.tensor([6, 4])
+    d0, d6 = mld.encode_distribution(x, lengths), narrow.encode_distribution(x, lengths)
+    torch.testing.assert_close(d6.mu, d0.mu, atol=0, rtol=0)
+    torch.testing.assert_close(d6.logvar, d0.logvar - 6.0, atol=1e-6, rtol=0)
+    torch.testing.assert_close(d6.std, d0.std * math.exp(-3.0), atol=1e-7, rtol=1e-5)
+    assert MotionVAEConfig().logvar_offset == 0.0  # MLD
+
+
 # --------------------------------------------------------------------------------------------------
 # Losses
 # --------------------------------------------------------------------------------------------------
