@@ -63,6 +63,24 @@ class MotionTextDataset(Dataset):
         }
 
 
+def pad_tokens(tokens: list[np.ndarray], max_tokens: int | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+    """B word-token embedding arrays (n_b, H) -> zero-padded (B, N, H) float32 and mask (B, N) bool.
+
+    ``N = max_tokens`` or the longest n_b (at least 1, so an empty caption still has a shape);
+    ``mask[b, i]`` is True for the real tokens ``i < n_b``. Raises if an array is longer than N.
+    """
+    counts = [len(t) for t in tokens]
+    n = max([1, *counts]) if max_tokens is None else max_tokens
+    if max(counts, default=0) > n:
+        raise ValueError(f"a caption has {max(counts)} word tokens, more than max_tokens={n}")
+    dim = tokens[0].shape[-1] if tokens else 0
+    out = np.zeros((len(tokens), n, dim), np.float32)
+    for b, t in enumerate(tokens):
+        out[b, : len(t)] = t
+    mask = torch.arange(n)[None] < torch.tensor(counts, dtype=torch.long)[:, None]
+    return torch.from_numpy(out), mask
+
+
 def collate_trimmed(items: list[dict[str, torch.Tensor]]) -> dict[str, torch.Tensor]:
     """Stack items and cut ``motion`` (B, P, D) to (B, max(length), D).
 

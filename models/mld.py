@@ -13,6 +13,15 @@ frozen text embedding, after a ReLU in MLD / MotionLCM V1 (``text_activation="re
 in MotionLCM V2 (``"none"``). When h != C the latent goes through ``Linear(C -> h)`` in and
 ``Linear(h -> C)`` out (MotionLCM V2); otherwise there are no latent projections (MLD 1 x 256).
 
+Word tokens (``text_tokens=True``; our addition, off in MLD and in the ``paper`` profile): the
+caption's N frozen token embeddings (B, N, H), each through ``Linear(H -> h)``, are appended to the
+sequence, ``[z_t; time; text; words]``, with a key-padding mask over missing tokens. Why: MLD's
+pooled CLIP token is the causal transformer's end-of-text state, which sees word order; our MiniLM
+substitute is a mean over tokens and does not. Its cosine similarity is 0.995 between "a person
+walks forward then turns around" and "... turns around then walks forward", and 0.98 between
+"waves with the right hand" and "... left hand", so a denoiser that sees only the pooled vector
+can hardly tell order or side apart, while the evaluator's word-level GRU can.
+
 MotionLCM hooks: ``time_cond_dim`` adds the LCM guidance-scale embedding, ``Linear(time_cond_dim -> F,
 bias=False)`` zero-initialised and added to the sinusoid before the MLP (so a student loaded from a
 teacher with ``strict=False`` starts identical to it); ``residuals`` in :meth:`MLDDenoiser.forward` and
@@ -76,7 +85,8 @@ class MLDConfig:
     ``latent_tokens``/``latent_dim`` must match the VAE's; ``hidden_dim`` None = width ``latent_dim``
     with no latent projections. ``time_freq_dim`` is the sinusoid size F (MLD 768). ``time_cond_dim``
     is None for MLD and 256 for a MotionLCM student. ``latent_scale`` s: diffusion runs on ``z / s``
-    (MLD: 1.0).
+    (MLD: 1.0). ``text_tokens`` appends the caption's word-token embeddings (H = ``token_dim``, None:
+    ``text_dim``) to the sequence (see the module docstring; MLD: False).
     """
 
     latent_tokens: int = 1
@@ -98,6 +108,8 @@ class MLDConfig:
     time_cond_dim: int | None = None
     prediction_type: PredictionType = "epsilon"
     latent_scale: float = 1.0
+    text_tokens: bool = False
+    token_dim: int | None = None
 
     @property
     def width(self) -> int:
@@ -156,6 +168,7 @@ class MLDDenoiser(nn.Module):
         self.text_proj = nn.Sequential(
             nn.ReLU() if cfg.text_activation == "relu" else nn.Identity(), nn.Linear(cfg.text_dim, h)
         )
+        self.token_proj = nn.Linear(cfg.token_dim or cfg.text_dim, h) if cfg.text_tokens else None
         self.pos_encoding = PositionalEncoding(h, cfg.pos_encoding, cfg.max_len)
         self.transformer = SkipTransformer(
             h, cfg.layers, cfg.heads, cfg.ff_dim, cfg.dropout, cfg.activation, norm_first=cfg.norm_first
@@ -172,22 +185,32 @@ class MLDDenoiser(nn.Module):
         t: Tensor | int,
         text_emb: Tensor,
         *,
+        text_tokens: Tensor | None = None,
+        text_mask: Tensor | None = None,
         time_cond: Tensor | None = None,
         residuals: Sequence[Tensor | None] | None = None,
     ) -> SkipOutput:
-        """Like :meth:`forward` but also returns the transformer's per-layer hidden states (B, L + 2, h)."""
+        """Like :meth:`forward` but also returns the transformer's per-layer hidden states (B, S, h),
+        S = L + 2 (+ N word tokens)."""
         b, n, _ = z_t.shape
         t = torch.as_tensor(t, device=z_t.device)
         t = t.expand(b) if t.ndim == 0 else t
-        tokens = torch.cat(
-            [
-                self.latent_in(z_t),
-                self.time_embedding(t, time_cond)[:, None],
-                self.text_proj(text_emb.to(z_t.dtype))[:, None],
-            ],
-            dim=1,
-        )
-        out, hidden = self.transformer.run(self.pos_encoding(tokens), residuals=residuals)
+        parts = [
+            self.latent_in(z_t),
+            self.time_embedding(t, time_cond)[:, None],
+            self.text_proj(text_emb.to(z_t.dtype))[:, None],
+        ]
+        pad = None
+        if self.token_proj is not None:
+            if text_tokens is None or text_mask is None:
+                raise ValueError("this denoiser has text_tokens=True: pass text_tokens (B, N, H) and text_mask (B, N)")
+            if text_mask.shape != text_tokens.shape[:2]:
+                raise ValueError(f"text_mask {tuple(text_mask.shape)} does not match text_tokens "
+                                 f"{tuple(text_tokens.shape)}")
+            parts.append(self.token_proj(text_tokens.to(z_t.dtype)))
+            pad = torch.cat([text_mask.new_zeros(b, n + 2), ~text_mask.bool()], dim=1)
+        tokens = self.pos_encoding(torch.cat(parts, dim=1))
+        out, hidden = self.transformer.run(tokens, key_padding_mask=pad, residuals=residuals)
         return SkipOutput(self.latent_out(out[:, :n]), hidden)
 
     def forward(
@@ -196,15 +219,20 @@ class MLDDenoiser(nn.Module):
         t: Tensor | int,
         text_emb: Tensor,
         *,
+        text_tokens: Tensor | None = None,
+        text_mask: Tensor | None = None,
         time_cond: Tensor | None = None,
         residuals: Sequence[Tensor | None] | None = None,
     ) -> Tensor:
         """Predict epsilon (``prediction_type``) from z_t (B, L, C), t (B,) int, text_emb (B, E) -> (B, L, C).
 
-        ``time_cond`` (B, time_cond_dim): MotionLCM's guidance-scale embedding. ``residuals``: one
-        (B, L + 2, h) tensor or None per transformer layer (ControlNet).
+        ``text_tokens`` (B, N, H) and ``text_mask`` (B, N) bool (True = a real token): the word tokens,
+        required with ``text_tokens=True`` and ignored otherwise. ``time_cond`` (B, time_cond_dim):
+        MotionLCM's guidance-scale embedding. ``residuals``: one (B, S, h) tensor or None per
+        transformer layer (ControlNet).
         """
-        return self.run(z_t, t, text_emb, time_cond=time_cond, residuals=residuals).output
+        return self.run(z_t, t, text_emb, text_tokens=text_tokens, text_mask=text_mask, time_cond=time_cond,
+                        residuals=residuals).output
 
 
 # --------------------------------------------------------------------------------------------------
@@ -217,19 +245,25 @@ def _gen_device(generator: torch.Generator | None, fallback: torch.device) -> to
 
 
 def drop_text(
-    text_emb: Tensor, p: float, generator: torch.Generator | None = None, null: Tensor | None = None
-) -> Tensor:
-    """Classifier-free-guidance condition dropout: each row of text_emb (B, E) becomes ``null`` w.p. ``p``.
+    text_emb: Tensor,
+    p: float,
+    generator: torch.Generator | None = None,
+    null: Tensor | None = None,
+    text_mask: Tensor | None = None,
+) -> tuple[Tensor, Tensor | None]:
+    """Classifier-free-guidance condition dropout: each caption is replaced by the null one w.p. ``p``.
 
-    ``null`` (E,) or (B, E) defaults to zeros (the default ``MLDDenoiser.null_text``). p = 0 returns the
-    input unchanged, p = 1 all null.
+    text_emb (B, E): a dropped row becomes ``null`` ((E,) or (B, E); zeros by default, the default
+    ``MLDDenoiser.null_text``). text_mask (B, N) bool, optional: a dropped row loses all its word tokens
+    (the null caption has none). Returns ``(text_emb, text_mask)``; p = 0 returns the inputs unchanged,
+    p = 1 all null. One uniform per row decides both.
     """
     null = torch.zeros_like(text_emb) if null is None else null.to(text_emb.device, text_emb.dtype).expand_as(text_emb)
     if p <= 0:
-        return text_emb
+        return text_emb, text_mask
     drop = torch.rand(text_emb.shape[0], generator=generator, device=_gen_device(generator, text_emb.device))
     drop = (drop < p).to(text_emb.device)[:, None]
-    return torch.where(drop, null, text_emb)
+    return torch.where(drop, null, text_emb), None if text_mask is None else text_mask & ~drop
 
 
 def mld_loss(
@@ -240,19 +274,23 @@ def mld_loss(
     p_uncond: float = 0.1,
     generator: torch.Generator | None = None,
     *,
+    text_tokens: Tensor | None = None,
+    text_mask: Tensor | None = None,
     time_cond: Tensor | None = None,
 ) -> dict[str, Tensor]:
     """MLD's diffusion loss on diffusion-space latents z0 (B, L, C) (i.e. ``z / latent_scale``).
 
-    ``t ~ U{0..T-1}``, ``eps ~ N(0, I)``, ``z_t = q_sample(z0, t, eps)``, text dropped to the null
-    embedding w.p. ``p_uncond``; ``mse = mean ||target - net(z_t, t, c)||^2`` with target = eps for
-    epsilon prediction. All randomness comes from ``generator``. Returns ``{"mse", "total"}`` (equal).
+    ``t ~ U{0..T-1}``, ``eps ~ N(0, I)``, ``z_t = q_sample(z0, t, eps)``, the caption (text_emb (B, E)
+    and, for a ``text_tokens`` denoiser, its word tokens (B, N, H) with text_mask (B, N)) dropped to
+    the null caption w.p. ``p_uncond``; ``mse = mean ||target - net(z_t, t, c)||^2`` with target = eps
+    for epsilon prediction. All randomness comes from ``generator``. Returns ``{"mse", "total"}`` (equal).
     """
     dev = _gen_device(generator, z0.device)
     t = sample_timesteps(z0.shape[0], schedule.num_steps, generator, dev).to(z0.device)
     noise = torch.randn(z0.shape, generator=generator, device=dev, dtype=z0.dtype).to(z0.device)
-    text = drop_text(text_emb, p_uncond, generator, denoiser.null_text)
-    pred = denoiser(schedule.q_sample(z0, t, noise), t, text, time_cond=time_cond)
+    text, mask = drop_text(text_emb, p_uncond, generator, denoiser.null_text, text_mask)
+    pred = denoiser(schedule.q_sample(z0, t, noise), t, text, text_tokens=text_tokens, text_mask=mask,
+                    time_cond=time_cond)
     target = schedule.prediction_target(z0, noise, t, denoiser.config.prediction_type)
     mse = F.mse_loss(pred, target)
     return {"mse": mse, "total": mse}
@@ -298,8 +336,13 @@ def sample_mld(
     timesteps: Sequence[int] | Tensor | None = None,
     x_T: Tensor | None = None,
     num_frames: int | None = None,
+    text_tokens: Tensor | None = None,
+    text_mask: Tensor | None = None,
 ) -> Tensor:
     """Text-to-motion with MLD: text_emb (B, E), lengths (B,) -> normalised features (B, T, D).
+
+    A ``text_tokens`` denoiser also needs the word tokens (B, N, H) and text_mask (B, N); the
+    unconditional pass gets the null embedding and no tokens.
 
     ``z_T ~ N(0, I)`` (B, L, C) from ``generator`` (or ``x_T``); DDIM (:func:`models.diffusion.ddim_sample`,
     ``num_steps`` on MLD's grid unless ``timesteps``/``timestep_spacing`` say otherwise, ``eta``) on the
@@ -316,13 +359,19 @@ def sample_mld(
     if x_T is None:
         x_T = torch.randn(shape, generator=generator, device=_gen_device(generator, device)).to(device)
 
-    def model_fn(x: Tensor, t: Tensor, text_emb: Tensor) -> Tensor:
-        return denoiser(x, t, text_emb)
+    def model_fn(x: Tensor, t: Tensor, text_emb: Tensor, **tokens: Tensor) -> Tensor:
+        return denoiser(x, t, text_emb, **tokens)
 
-    guided = classifier_free_guidance(model_fn, guidance, {"text_emb": denoiser.null_text_like(text_emb[:1])})
+    cond, uncond = {"text_emb": text_emb}, {"text_emb": denoiser.null_text_like(text_emb[:1])}
+    if cfg.text_tokens:
+        if text_tokens is None or text_mask is None:
+            raise ValueError("this denoiser has text_tokens=True: pass text_tokens and text_mask")
+        cond |= {"text_tokens": text_tokens, "text_mask": text_mask.bool()}
+        uncond["text_mask"] = torch.zeros_like(text_mask[:1], dtype=torch.bool)
+    guided = classifier_free_guidance(model_fn, guidance, uncond)
     with _eval_mode(denoiser, vae):
         z0 = ddim_sample(
             guided, shape, schedule, num_steps, eta, generator, cfg.prediction_type,
-            cond={"text_emb": text_emb}, x_T=x_T, timestep_spacing=timestep_spacing, timesteps=timesteps,
+            cond=cond, x_T=x_T, timestep_spacing=timestep_spacing, timesteps=timesteps,
         )
         return vae.decode_by_length(z0 * scale, lengths, num_frames)

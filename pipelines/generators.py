@@ -21,6 +21,7 @@ import numpy as np
 import torch
 
 from data.features import recover_from_ric
+from data.motion_dataset import pad_tokens
 from data.store import StoredItem
 from data.text_encoders import build_text_encoder
 from models.diffusion import NoiseSchedule
@@ -106,8 +107,12 @@ class MLDGenerator:
     @torch.inference_mode()
     def sample(self, text: TextBatch, lengths: np.ndarray, seed: int) -> np.ndarray:
         generator = torch.Generator().manual_seed(seed)
+        words = {}
+        if self.denoiser.config.text_tokens:
+            tokens, mask = pad_tokens([np.asarray(t, np.float32) for t in text.tokens])
+            words = {"text_tokens": tokens, "text_mask": mask}
         out = sample_mld(self.denoiser, self.vae, self.schedule, torch.from_numpy(text.pooled.astype(np.float32)),
-                         torch.as_tensor(lengths), self.num_steps, self.guidance, generator)
+                         torch.as_tensor(lengths), self.num_steps, self.guidance, generator, **words)
         return out.numpy()
 
 

@@ -26,9 +26,9 @@ from typing import Any
 
 import numpy as np
 import torch
-from torch.utils.data import Dataset
+from torch.utils.data import Dataset, default_collate
 
-from data.motion_dataset import MotionTextDataset
+from data.motion_dataset import MotionTextDataset, pad_tokens
 from models.diffusion import NoiseSchedule
 from models.mld import MLDConfig, MLDDenoiser, latent_std, mld_loss
 from models.vae import LatentDistribution, MotionVAE
@@ -50,11 +50,13 @@ class LatentTextDataset(Dataset):
     """Training items as frozen-VAE posteriors: ``mu``/``logvar`` (L, C) per item, plus a random caption.
 
     Elements: ``mu``, ``logvar`` (L, C) float32, ``text`` (E,) pooled embedding of a caption drawn
-    with the process-global torch RNG (as :class:`MotionTextDataset` draws it), ``index``.
+    with the process-global torch RNG (as :class:`MotionTextDataset` draws it), ``index``; with
+    ``word_tokens`` > 0 also that caption's ``tokens`` (word_tokens, H) float32, zero-padded, and
+    ``token_mask`` (word_tokens,) bool (:func:`collate_words` trims a batch to its longest caption).
     """
 
-    def __init__(self, motions: MotionTextDataset, vae: MotionVAE, batch_size: int = 64) -> None:
-        self.motions = motions
+    def __init__(self, motions: MotionTextDataset, vae: MotionVAE, batch_size: int = 64, word_tokens: int = 0) -> None:
+        self.motions, self.word_tokens = motions, word_tokens
         mu, logvar = [], []
         with torch.no_grad():
             for first in range(0, len(motions), batch_size):
@@ -72,13 +74,27 @@ class LatentTextDataset(Dataset):
     def __getitem__(self, index: int) -> dict[str, torch.Tensor]:
         item = self.motions.items[index]
         caption = int(torch.randint(0, len(item.captions), ()).item())
-        return {"mu": self.mu[index], "logvar": self.logvar[index], "index": torch.tensor(index),
-                "text": torch.from_numpy(item.text_pooled[caption].astype(np.float32))}
+        out = {"mu": self.mu[index], "logvar": self.logvar[index], "index": torch.tensor(index),
+               "text": torch.from_numpy(item.text_pooled[caption].astype(np.float32))}
+        if self.word_tokens:
+            tokens, mask = pad_tokens([item.text_tokens[caption]], self.word_tokens)
+            out |= {"tokens": tokens[0], "token_mask": mask[0]}
+        return out
+
+
+def collate_words(items: list[dict[str, torch.Tensor]]) -> dict[str, torch.Tensor]:
+    """Stack items and cut ``tokens`` (B, N, H) / ``token_mask`` (B, N) to the longest caption (padding only)."""
+    batch = default_collate(items)
+    if "token_mask" in batch:
+        n = max(1, int(batch["token_mask"].sum(1).max()))
+        batch["tokens"], batch["token_mask"] = batch["tokens"][:, :n], batch["token_mask"][:, :n]
+    return batch
 
 
 def dataset(config: dict) -> LatentTextDataset:
     motions = MotionTextDataset(config["features_dir"], "train", config["mean"], config["std"], config["max_frames"])
-    return LatentTextDataset(motions, load_vae(Path(config["vae_dir"])))
+    words = config["max_text_tokens"] if config["model"].get("text_tokens") else 0
+    return LatentTextDataset(motions, load_vae(Path(config["vae_dir"])), word_tokens=words)
 
 
 def build(config: dict) -> Components:
@@ -92,12 +108,13 @@ def step(batch: dict, ctx: StepContext) -> dict[str, torch.Tensor]:
     """z0 = (mu + sigma * eps) / s with a fresh eps (MLD samples the posterior), then MLD's eps loss."""
     z0 = LatentDistribution(batch["mu"], batch["logvar"]).sample() / ctx.config["model"]["latent_scale"]
     losses = mld_loss(ctx.models["denoiser"], ctx.frozen["schedule"], z0, batch["text"],
-                      p_uncond=ctx.config["p_uncond"])
+                      p_uncond=ctx.config["p_uncond"], text_tokens=batch.get("tokens"),
+                      text_mask=batch.get("token_mask"))
     ctx.update(losses["total"])
     return {"loss": losses["total"].detach()}
 
 
-SPEC = TrainSpec(build=build, dataset=dataset, step=step)
+SPEC = TrainSpec(build=build, dataset=dataset, step=step, collate=collate_words)
 
 
 def measure_latent_std(data: LatentTextDataset, seed: int = 0) -> float:
@@ -113,12 +130,13 @@ def loop_config(params: dict[str, Any]) -> dict[str, Any]:
     vae_dir = (REPO_ROOT / params["paths"]["artifacts"] / "train_vae").resolve()
     mean, std = np.load(features / "mean.npy"), np.load(features / "std.npy")
     vae_model = load_final_model(vae_dir)["config"]["model"]
-    text_dim = json.loads((features / "meta.json").read_text())["text_encoder"]["dim"]
+    encoder = json.loads((features / "meta.json").read_text())["text_encoder"]
     model = {**cfg["model"], "latent_tokens": vae_model["latent_tokens"], "latent_dim": vae_model["latent_dim"],
-             "text_dim": text_dim}
+             "text_dim": encoder["dim"], "token_dim": encoder["token_dim"]}
     config = {key: cfg[key] for key in RUNNER_KEYS} | {
         "features_dir": str(features), "vae_dir": str(vae_dir), "mean": mean.tolist(), "std": std.tolist(),
-        "max_frames": cfg["max_frames"], "lr": cfg["lr"], "weight_decay": cfg["weight_decay"],
+        "max_frames": cfg["max_frames"], "max_text_tokens": encoder["max_length"], "lr": cfg["lr"],
+        "weight_decay": cfg["weight_decay"],
         "p_uncond": cfg["p_uncond"], "ema": {"denoiser": cfg["ema_decay"]} if cfg["ema_decay"] else {},
         "beta_schedule": cfg["beta_schedule"], "beta_start": cfg["beta_start"], "beta_end": cfg["beta_end"],
         "num_train_timesteps": cfg["num_train_timesteps"], "model": model,

@@ -146,17 +146,19 @@ def test_drop_text_and_null_condition() -> None:
     net = _denoiser().eval()
     text = torch.randn(64, E, generator=_gen(0)) + 3.0
     assert torch.equal(net.null_text, torch.zeros(E))
-    assert torch.equal(drop_text(text, 0.0, _gen(1)), text)
-    assert torch.equal(drop_text(text, 1.0, _gen(1)), torch.zeros_like(text))
-    half = drop_text(text, 0.5, _gen(1))
+    assert torch.equal(drop_text(text, 0.0, _gen(1))[0], text)
+    assert torch.equal(drop_text(text, 1.0, _gen(1))[0], torch.zeros_like(text))
+    mask = torch.ones(64, 5, dtype=torch.bool)
+    half, half_mask = drop_text(text, 0.5, _gen(1), text_mask=mask)
     dropped = (half == 0).all(-1)
     assert bool(((half == text).all(-1) | dropped).all()) and 10 < int(dropped.sum()) < 54
     expected = torch.rand(64, generator=_gen(1)) < 0.5
     assert torch.equal(dropped, expected)
-    torch.testing.assert_close(drop_text(text, 0.5, _gen(1)), half, atol=0, rtol=0)
+    assert torch.equal(half_mask, ~expected[:, None].expand(64, 5))  # a dropped caption loses its words
+    torch.testing.assert_close(drop_text(text, 0.5, _gen(1))[0], half, atol=0, rtol=0)
     z, t = torch.randn(64, L, C), torch.randint(0, 1000, (64,))
     torch.testing.assert_close(
-        net(z, t, drop_text(text, 1.0)), net(z, t, net.null_text_like(text)), atol=0, rtol=0
+        net(z, t, drop_text(text, 1.0)[0]), net(z, t, net.null_text_like(text)), atol=0, rtol=0
     )
 
 
@@ -168,7 +170,7 @@ def test_mld_loss_value(schedule: NoiseSchedule) -> None:
     g = _gen(7)
     t = sample_timesteps(4, 1000, g)
     noise = torch.randn(z0.shape, generator=g)
-    cond = drop_text(text, 0.5, g)
+    cond, _ = drop_text(text, 0.5, g)
     x_t = schedule.sqrt_alphas_cumprod[t].float()[:, None, None] * z0 + (
         schedule.sqrt_one_minus_alphas_cumprod[t].float()[:, None, None] * noise
     )
@@ -265,3 +267,74 @@ def test_sample_mld_guidance_and_latent_scale(schedule: NoiseSchedule) -> None:
     sample_mld(scaled_net, vae, schedule, text, lengths, num_steps=4, guidance=1.0, x_T=x_T)
     torch.testing.assert_close(seen[0], 2.5 * z0)
     torch.testing.assert_close(seen[1], 0.5 * z0)
+
+
+# --------------------------------------------------------------------------------------------------
+# Word-token conditioning (text_tokens=True)
+# --------------------------------------------------------------------------------------------------
+
+
+def _words(b: int, n: int, seed: int = 5) -> tuple[torch.Tensor, torch.Tensor]:
+    tokens = torch.randn(b, n, 12, generator=_gen(seed))
+    mask = torch.arange(n)[None] < torch.tensor([n, n - 2, 1])[:b, None]
+    return tokens, mask
+
+
+def test_word_tokens_padding_and_order() -> None:
+    """Padded word tokens change nothing; the order of the real ones does (a pooled mean cannot see it)."""
+    net = _denoiser(text_tokens=True, token_dim=12).eval()
+    z, t, text = torch.randn(3, L, C, generator=_gen(0)), torch.tensor([5, 400, 999]), torch.randn(3, E)
+    tokens, mask = _words(3, 6)
+    base = net(z, t, text, text_tokens=tokens, text_mask=mask)
+    garbage = torch.where(mask[..., None], tokens, torch.randn(3, 6, 12, generator=_gen(9)) * 100)
+    torch.testing.assert_close(net(z, t, text, text_tokens=garbage, text_mask=mask), base, atol=1e-5, rtol=1e-5)
+    longer = torch.cat([tokens, torch.randn(3, 4, 12)], 1), torch.cat([mask, torch.zeros(3, 4, dtype=torch.bool)], 1)
+    torch.testing.assert_close(net(z, t, text, text_tokens=longer[0], text_mask=longer[1]), base, atol=1e-5, rtol=1e-5)
+    swapped = tokens.clone()
+    swapped[0, [0, 1]] = tokens[0, [1, 0]]
+    out = net(z, t, text, text_tokens=swapped, text_mask=mask)
+    assert not torch.allclose(out[0], base[0]) and torch.equal(out[1:], base[1:])
+    _, hidden = net.run(z, t, text, text_tokens=tokens, text_mask=mask)
+    assert hidden[0].shape == (3, L + 2 + 6, 16)
+    with pytest.raises(ValueError, match="text_tokens"):
+        net(z, t, text)
+
+
+def test_word_tokens_null_caption_in_loss_and_sampler(schedule: NoiseSchedule) -> None:
+    """The unconditional pass is the null embedding with no word tokens, in training and in CFG."""
+    net, vae = _denoiser(text_tokens=True, token_dim=12).eval(), _vae().eval()
+    text, lengths = torch.randn(3, E, generator=_gen(0)), torch.tensor([8, 5, 3])
+    tokens, mask = _words(3, 6)
+    z0 = torch.randn(3, L, C, generator=_gen(1))
+    out = mld_loss(net, schedule, z0, text, 1.0, _gen(7), text_tokens=tokens, text_mask=mask)
+    g = _gen(7)
+    t = sample_timesteps(3, 1000, g)
+    noise = torch.randn(z0.shape, generator=g)
+    x_t = schedule.q_sample(z0, t, noise)
+    null = net(x_t, t, net.null_text_like(text), text_tokens=tokens, text_mask=torch.zeros_like(mask))
+    torch.testing.assert_close(out["mse"], ((null - noise) ** 2).mean())
+    x_T = torch.randn(3, L, C, generator=_gen(3))
+    kw = {"num_steps": 4, "x_T": x_T, "text_tokens": tokens, "text_mask": mask}
+    uncond = ddim_sample(lambda x, t: net(x, t, net.null_text_like(text), text_tokens=tokens,
+                                          text_mask=torch.zeros_like(mask)), (3, L, C), schedule, 4, x_T=x_T)
+    torch.testing.assert_close(sample_mld(net, vae, schedule, text, lengths, guidance=0.0, **kw),
+                               vae.decode(uncond, lengths), atol=1e-5, rtol=1e-5)
+    cond = ddim_sample(lambda x, t: net(x, t, text, text_tokens=tokens, text_mask=mask), (3, L, C), schedule, 4,
+                       x_T=x_T)
+    torch.testing.assert_close(sample_mld(net, vae, schedule, text, lengths, guidance=1.0, **kw),
+                               vae.decode(cond, lengths), atol=1e-5, rtol=1e-5)
+
+
+def test_pad_tokens() -> None:
+    import numpy as np
+
+    from data.motion_dataset import pad_tokens
+
+    words = [np.ones((2, 3), np.float16), np.full((4, 3), 2.0, np.float16), np.zeros((0, 3), np.float16)]
+    tokens, mask = pad_tokens(words)
+    assert tokens.shape == (3, 4, 3) and tokens.dtype == torch.float32
+    assert mask.tolist() == [[True, True, False, False], [True] * 4, [False] * 4]
+    assert torch.equal(tokens[0, :2], torch.ones(2, 3)) and not tokens[0, 2:].any() and not tokens[2].any()
+    assert pad_tokens(words, 6)[0].shape == (3, 6, 3)
+    with pytest.raises(ValueError, match="max_tokens=3"):
+        pad_tokens(words, 3)

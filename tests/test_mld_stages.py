@@ -76,6 +76,29 @@ def test_latent_cache_is_each_items_own_posterior(trained):
         assert np.isclose(data.motions.items[k].text_pooled, text).all(axis=1).any()
 
 
+def test_latent_items_carry_their_captions_word_tokens(trained):
+    """With text_tokens the item's word tokens are its drawn caption's, zero-padded; a batch is cut
+    to its longest caption."""
+    import torch
+
+    config = train_mld.loop_config(trained)
+    assert config["model"]["text_tokens"] and config["model"]["token_dim"] == 384
+    data = train_mld.dataset(config)
+    torch.manual_seed(3)
+    items = [data[k] for k in range(8)]
+    for k, item in enumerate(items):
+        caption = next(c for c, pooled in enumerate(data.motions.items[k].text_pooled)
+                       if np.array_equal(pooled.astype(np.float32), item["text"].numpy()))
+        words = data.motions.items[k].text_tokens[caption]
+        n = int(item["token_mask"].sum())
+        assert n == len(words) and item["token_mask"][:n].all() and item["tokens"].shape == (32, 384)
+        np.testing.assert_array_equal(item["tokens"][:n].numpy(), words.astype(np.float32))
+        assert not item["tokens"][n:].any()
+    batch = train_mld.collate_words(items)
+    longest = max(int(item["token_mask"].sum()) for item in items)
+    assert batch["tokens"].shape == (8, longest, 384) and batch["token_mask"].shape == (8, longest)
+
+
 def test_mld_generator_is_seeded_and_zero_padded(trained):
     artifacts = Path(trained["paths"]["artifacts"])
     denoiser, schedule, _ = train_mld.load_mld(artifacts / "train_mld")
@@ -83,12 +106,16 @@ def test_mld_generator_is_seeded_and_zero_padded(trained):
     assert isinstance(gen, Generator) and gen.nfe == 8
     rng = np.random.default_rng(0)
     pooled = rng.standard_normal((3, 384)).astype(np.float32)
-    text = TextBatch(["a", "b", "c"], pooled / np.linalg.norm(pooled, axis=1, keepdims=True), [None] * 3)
+    words = [rng.standard_normal((n, 384)).astype(np.float16) for n in (5, 3, 7)]
+    text = TextBatch(["a", "b", "c"], pooled / np.linalg.norm(pooled, axis=1, keepdims=True), words)
     lengths = np.array([40, 24, 32])
     a, b, c = gen.sample(text, lengths, 1), gen.sample(text, lengths, 1), gen.sample(text, lengths, 2)
     assert a.shape == (3, 40, 263) and np.isfinite(a).all()
     np.testing.assert_array_equal(a, b)
     assert not np.allclose(a, c)
+    reordered = TextBatch(text.texts, text.pooled, [words[0][::-1], words[1], words[2]])
+    d = gen.sample(reordered, lengths, 1)  # the denoiser sees word order (text_tokens)
+    assert not np.allclose(a[0], d[0]) and np.allclose(a[1:], d[1:], atol=1e-5)
     assert not a[1, 24:].any() and not a[2, 32:].any() and np.abs(a[1, :24]).sum() > 0
 
 
