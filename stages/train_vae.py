@@ -2,9 +2,9 @@
 
 ``python -m stages.train_vae [key=value ...]`` trains :class:`models.vae.MotionVAE` on the
 training motions of the feature store (normalised with its Mean/Std) through the one runner:
-smooth-L1 on features and on global joints (``recover_from_ric``) + KL weight 1e-4, AdamW,
-cosine schedule with warm-up, gradient clipping. Writes ``artifacts/train_vae/`` (model.pt,
-metrics.json, loss.csv/png).
+smooth-L1 on features and on joints (``recover_from_ric``; global as MLD, or root-aligned with
+``joint_space: root``) + KL weight 1e-4, AdamW, cosine schedule with warm-up, gradient clipping.
+Writes ``artifacts/train_vae/`` (model.pt, metrics.json, loss.csv/png).
 """
 
 from __future__ import annotations
@@ -41,7 +41,8 @@ def build(config: dict) -> Components:
 def step(batch: dict, ctx: StepContext) -> dict[str, torch.Tensor]:
     cfg = ctx.config
     losses = vae_loss(ctx.models["vae"], batch["motion"], batch["length"], ctx.frozen["mean"], ctx.frozen["std"],
-                      cfg["joints_num"], kl_weight=cfg["kl_weight"], joint_weight=cfg["joint_weight"])
+                      cfg["joints_num"], kl_weight=cfg["kl_weight"], joint_weight=cfg["joint_weight"],
+                      joint_space=cfg["joint_space"])
     ctx.update(losses["total"])
     return {"loss": losses["total"].detach(), "feature": losses["feature"].detach(),
             "joint": losses["joint"].detach(), "kl": losses["kl"].detach()}
@@ -60,7 +61,7 @@ def loop_config(params: dict[str, Any]) -> dict[str, Any]:
     return {key: cfg[key] for key in RUNNER_KEYS} | {
         "features_dir": str(features), "mean": mean.tolist(), "std": std.tolist(), "joints_num": joints_num,
         "max_frames": cfg["max_frames"], "model": model, "lr": cfg["lr"], "weight_decay": cfg["weight_decay"],
-        "kl_weight": cfg["kl_weight"], "joint_weight": cfg["joint_weight"],
+        "kl_weight": cfg["kl_weight"], "joint_weight": cfg["joint_weight"], "joint_space": cfg["joint_space"],
     }
 
 

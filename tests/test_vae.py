@@ -200,6 +200,28 @@ def test_joint_term_zero_on_equal_and_positive_differentiable_otherwise(stats: t
         torch.testing.assert_close(terms2[key], terms[key].detach())
 
 
+def test_root_joint_space_ignores_translation_but_not_facing(stats: tuple[torch.Tensor, ...]) -> None:
+    """``joint_space="root"`` compares each frame's joints minus its root joint: a reconstruction that
+    only drifts (a constant root-velocity error) costs nothing there but does globally; a wrong
+    facing (a root-rotation-velocity error) costs in both."""
+    mean, std = stats
+    feats = torch.tensor(np.load(FIXTURES / "new_joint_vecs_012314.npy")[:20])
+    target = ((feats - mean) / std)[None]
+    lengths = torch.tensor([20])
+    drift = feats.clone()
+    drift[:, 1] += 0.05  # root x-velocity (m/frame, root frame): the whole body translates
+    drift = ((drift - mean) / std)[None]
+    turn = feats.clone()
+    turn[:, 0] += 0.05  # root yaw velocity (rad/frame): the body turns
+    turn = ((turn - mean) / std)[None]
+    global_drift = reconstruction_losses(drift, target, lengths, mean, std, JOINTS)["joint"]
+    root_drift = reconstruction_losses(drift, target, lengths, mean, std, JOINTS, "root")["joint"]
+    root_turn = reconstruction_losses(turn, target, lengths, mean, std, JOINTS, "root")["joint"]
+    assert float(global_drift) > 1e-3 and float(root_drift) < 1e-10 and float(root_turn) > 1e-4
+    with pytest.raises(ValueError, match="joint_space"):
+        reconstruction_losses(target, target, lengths, mean, std, JOINTS, "local")
+
+
 def test_vae_loss_combines_terms(stats: tuple[torch.Tensor, ...]) -> None:
     mean, std = stats
     vae = _tiny()
