@@ -13,14 +13,21 @@ frozen text embedding, after a ReLU in MLD / MotionLCM V1 (``text_activation="re
 in MotionLCM V2 (``"none"``). When h != C the latent goes through ``Linear(C -> h)`` in and
 ``Linear(h -> C)`` out (MotionLCM V2); otherwise there are no latent projections (MLD 1 x 256).
 
-Word tokens (``text_tokens=True``; our addition, off in MLD and in the ``paper`` profile): the
-caption's N frozen token embeddings (B, N, H), each through ``Linear(H -> h)``, are appended to the
-sequence, ``[z_t; time; text; words]``, with a key-padding mask over missing tokens. Why: MLD's
+Word tokens (``word_tokens``; our addition, ``"none"`` in MLD and in the ``paper`` profile): the
+caption's N frozen token embeddings (B, N, H), each through ``Linear(H -> h)``, either join the
+sequence (``"sequence"``: ``[z_t; time; text; words]`` with a key-padding mask over missing tokens)
+or are a cross-attention memory of every layer (``"cross_attention"``: memory ``[text; words]`` plus
+a positional encoding, missing tokens masked; the pooled text token keeps the memory non-empty for
+the null caption). Cross-attention costs less: the words are keys and values only, not queries
+through the feed-forward (3 layers of width 128, batch 64, 16 words: 30 ms forward+backward against
+54 ms for the sequence and 14 ms without words). Why word tokens at all: MLD's
 pooled CLIP token is the causal transformer's end-of-text state, which sees word order; our MiniLM
 substitute is a mean over tokens and does not. Its cosine similarity is 0.995 between "a person
 walks forward then turns around" and "... turns around then walks forward", and 0.98 between
 "waves with the right hand" and "... left hand", so a denoiser that sees only the pooled vector
-can hardly tell order or side apart, while the evaluator's word-level GRU can.
+can hardly tell order or side apart, while the evaluator's word-level GRU can. On the ``tiny`` MLD
+(same VAE, 10000 steps, 2 replications) DDIM-50 R@3 / FID went from 0.78 / 4.5 without words to
+0.87 / 3.2 with ``"sequence"`` and 0.90 / 3.4 with ``"cross_attention"``.
 
 MotionLCM hooks: ``time_cond_dim`` adds the LCM guidance-scale embedding, ``Linear(time_cond_dim -> F,
 bias=False)`` zero-initialised and added to the sinusoid before the MLP (so a student loaded from a
@@ -76,6 +83,7 @@ from models.transformer import (
 from models.vae import MotionVAE
 
 TextActivation = Literal["relu", "none"]
+WordTokens = Literal["none", "sequence", "cross_attention"]
 
 
 @dataclass(frozen=True)
@@ -85,8 +93,8 @@ class MLDConfig:
     ``latent_tokens``/``latent_dim`` must match the VAE's; ``hidden_dim`` None = width ``latent_dim``
     with no latent projections. ``time_freq_dim`` is the sinusoid size F (MLD 768). ``time_cond_dim``
     is None for MLD and 256 for a MotionLCM student. ``latent_scale`` s: diffusion runs on ``z / s``
-    (MLD: 1.0). ``text_tokens`` appends the caption's word-token embeddings (H = ``token_dim``, None:
-    ``text_dim``) to the sequence (see the module docstring; MLD: False).
+    (MLD: 1.0). ``word_tokens`` feeds the caption's word-token embeddings (H = ``token_dim``, None:
+    ``text_dim``) to the denoiser: "none" (MLD), "sequence" or "cross_attention" (module docstring).
     """
 
     latent_tokens: int = 1
@@ -108,7 +116,7 @@ class MLDConfig:
     time_cond_dim: int | None = None
     prediction_type: PredictionType = "epsilon"
     latent_scale: float = 1.0
-    text_tokens: bool = False
+    word_tokens: WordTokens = "none"
     token_dim: int | None = None
 
     @property
@@ -158,6 +166,8 @@ class MLDDenoiser(nn.Module):
         cfg = config if isinstance(config, MLDConfig) else MLDConfig(**dict(config or {}))
         if cfg.text_activation not in ("relu", "none"):
             raise ValueError(f"unknown text_activation {cfg.text_activation!r}")
+        if cfg.word_tokens not in ("none", "sequence", "cross_attention"):
+            raise ValueError(f"unknown word_tokens {cfg.word_tokens!r}: none | sequence | cross_attention")
         self.config = cfg
         h = cfg.width
         self.latent_in: nn.Module = nn.Linear(cfg.latent_dim, h) if cfg.hidden_dim is not None else nn.Identity()
@@ -168,10 +178,11 @@ class MLDDenoiser(nn.Module):
         self.text_proj = nn.Sequential(
             nn.ReLU() if cfg.text_activation == "relu" else nn.Identity(), nn.Linear(cfg.text_dim, h)
         )
-        self.token_proj = nn.Linear(cfg.token_dim or cfg.text_dim, h) if cfg.text_tokens else None
+        self.token_proj = nn.Linear(cfg.token_dim or cfg.text_dim, h) if cfg.word_tokens != "none" else None
         self.pos_encoding = PositionalEncoding(h, cfg.pos_encoding, cfg.max_len)
         self.transformer = SkipTransformer(
-            h, cfg.layers, cfg.heads, cfg.ff_dim, cfg.dropout, cfg.activation, norm_first=cfg.norm_first
+            h, cfg.layers, cfg.heads, cfg.ff_dim, cfg.dropout, cfg.activation, norm_first=cfg.norm_first,
+            cross_attention=cfg.word_tokens == "cross_attention",
         )
         self.register_buffer("null_text", torch.zeros(cfg.text_dim))
 
@@ -191,7 +202,7 @@ class MLDDenoiser(nn.Module):
         residuals: Sequence[Tensor | None] | None = None,
     ) -> SkipOutput:
         """Like :meth:`forward` but also returns the transformer's per-layer hidden states (B, S, h),
-        S = L + 2 (+ N word tokens)."""
+        S = L + 2 (+ N with ``word_tokens="sequence"``)."""
         b, n, _ = z_t.shape
         t = torch.as_tensor(t, device=z_t.device)
         t = t.expand(b) if t.ndim == 0 else t
@@ -200,17 +211,23 @@ class MLDDenoiser(nn.Module):
             self.time_embedding(t, time_cond)[:, None],
             self.text_proj(text_emb.to(z_t.dtype))[:, None],
         ]
-        pad = None
+        extra: dict[str, Tensor] = {}
         if self.token_proj is not None:
             if text_tokens is None or text_mask is None:
-                raise ValueError("this denoiser has text_tokens=True: pass text_tokens (B, N, H) and text_mask (B, N)")
+                raise ValueError(f"this denoiser has word_tokens={self.config.word_tokens!r}: pass text_tokens "
+                                 "(B, N, H) and text_mask (B, N)")
             if text_mask.shape != text_tokens.shape[:2]:
                 raise ValueError(f"text_mask {tuple(text_mask.shape)} does not match text_tokens "
                                  f"{tuple(text_tokens.shape)}")
-            parts.append(self.token_proj(text_tokens.to(z_t.dtype)))
-            pad = torch.cat([text_mask.new_zeros(b, n + 2), ~text_mask.bool()], dim=1)
+            words, missing = self.token_proj(text_tokens.to(z_t.dtype)), ~text_mask.bool()
+            if self.config.word_tokens == "sequence":
+                parts.append(words)
+                extra["key_padding_mask"] = torch.cat([missing.new_zeros(b, n + 2), missing], dim=1)
+            else:
+                extra["memory"] = self.pos_encoding(torch.cat([parts[-1], words], dim=1))
+                extra["memory_key_padding_mask"] = torch.cat([missing.new_zeros(b, 1), missing], dim=1)
         tokens = self.pos_encoding(torch.cat(parts, dim=1))
-        out, hidden = self.transformer.run(tokens, key_padding_mask=pad, residuals=residuals)
+        out, hidden = self.transformer.run(tokens, **extra, residuals=residuals)
         return SkipOutput(self.latent_out(out[:, :n]), hidden)
 
     def forward(
@@ -227,7 +244,7 @@ class MLDDenoiser(nn.Module):
         """Predict epsilon (``prediction_type``) from z_t (B, L, C), t (B,) int, text_emb (B, E) -> (B, L, C).
 
         ``text_tokens`` (B, N, H) and ``text_mask`` (B, N) bool (True = a real token): the word tokens,
-        required with ``text_tokens=True`` and ignored otherwise. ``time_cond`` (B, time_cond_dim):
+        required unless ``word_tokens="none"`` and ignored then. ``time_cond`` (B, time_cond_dim):
         MotionLCM's guidance-scale embedding. ``residuals``: one (B, S, h) tensor or None per
         transformer layer (ControlNet).
         """
@@ -281,7 +298,7 @@ def mld_loss(
     """MLD's diffusion loss on diffusion-space latents z0 (B, L, C) (i.e. ``z / latent_scale``).
 
     ``t ~ U{0..T-1}``, ``eps ~ N(0, I)``, ``z_t = q_sample(z0, t, eps)``, the caption (text_emb (B, E)
-    and, for a ``text_tokens`` denoiser, its word tokens (B, N, H) with text_mask (B, N)) dropped to
+    and, for a ``word_tokens`` denoiser, its word tokens (B, N, H) with text_mask (B, N)) dropped to
     the null caption w.p. ``p_uncond``; ``mse = mean ||target - net(z_t, t, c)||^2`` with target = eps
     for epsilon prediction. All randomness comes from ``generator``. Returns ``{"mse", "total"}`` (equal).
     """
@@ -341,7 +358,7 @@ def sample_mld(
 ) -> Tensor:
     """Text-to-motion with MLD: text_emb (B, E), lengths (B,) -> normalised features (B, T, D).
 
-    A ``text_tokens`` denoiser also needs the word tokens (B, N, H) and text_mask (B, N); the
+    A ``word_tokens`` denoiser also needs the word tokens (B, N, H) and text_mask (B, N); the
     unconditional pass gets the null embedding and no tokens.
 
     ``z_T ~ N(0, I)`` (B, L, C) from ``generator`` (or ``x_T``); DDIM (:func:`models.diffusion.ddim_sample`,
@@ -363,9 +380,9 @@ def sample_mld(
         return denoiser(x, t, text_emb, **tokens)
 
     cond, uncond = {"text_emb": text_emb}, {"text_emb": denoiser.null_text_like(text_emb[:1])}
-    if cfg.text_tokens:
+    if cfg.word_tokens != "none":
         if text_tokens is None or text_mask is None:
-            raise ValueError("this denoiser has text_tokens=True: pass text_tokens and text_mask")
+            raise ValueError(f"this denoiser has word_tokens={cfg.word_tokens!r}: pass text_tokens and text_mask")
         cond |= {"text_tokens": text_tokens, "text_mask": text_mask.bool()}
         uncond["text_mask"] = torch.zeros_like(text_mask[:1], dtype=torch.bool)
     guided = classifier_free_guidance(model_fn, guidance, uncond)

@@ -108,7 +108,7 @@ class MLDGenerator:
     def sample(self, text: TextBatch, lengths: np.ndarray, seed: int) -> np.ndarray:
         generator = torch.Generator().manual_seed(seed)
         words = {}
-        if self.denoiser.config.text_tokens:
+        if self.denoiser.config.word_tokens != "none":
             tokens, mask = pad_tokens([np.asarray(t, np.float32) for t in text.tokens])
             words = {"text_tokens": tokens, "text_mask": mask}
         out = sample_mld(self.denoiser, self.vae, self.schedule, torch.from_numpy(text.pooled.astype(np.float32)),

@@ -93,7 +93,7 @@ def collate_words(items: list[dict[str, torch.Tensor]]) -> dict[str, torch.Tenso
 
 def dataset(config: dict) -> LatentTextDataset:
     motions = MotionTextDataset(config["features_dir"], "train", config["mean"], config["std"], config["max_frames"])
-    words = config["max_text_tokens"] if config["model"].get("text_tokens") else 0
+    words = config["max_text_tokens"] if config["model"].get("word_tokens", "none") != "none" else 0
     return LatentTextDataset(motions, load_vae(Path(config["vae_dir"])), word_tokens=words)
 
 

@@ -35,11 +35,12 @@ def test_paper_profile_is_mlds_published_architecture():
     assert {k: vae["model"][k] for k in keys} == {
         "latent_tokens": 1, "latent_dim": 256, "hidden_dim": None, "layers": 9, "ff_dim": 1024, "logvar_offset": 0.0}
     # denoiser width = the VAE's latent_dim (no latent projections), MLD's 9 layers, ff 1024, 768-d time sinusoid
-    assert {k: mld["model"][k] for k in ("hidden_dim", "layers", "ff_dim", "time_freq_dim")} == {
-        "hidden_dim": None, "layers": 9, "ff_dim": 1024, "time_freq_dim": 768}
+    assert {k: mld["model"][k] for k in ("hidden_dim", "layers", "ff_dim", "time_freq_dim", "word_tokens")} == {
+        "hidden_dim": None, "layers": 9, "ff_dim": 1024, "time_freq_dim": 768, "word_tokens": "none"}
     assert (mld["guidance"], mld["beta_schedule"], mld["num_train_timesteps"], mld["lr"]) == (
         7.5, "scaled_linear", 1000, 1e-4)
     assert vae["kl_weight"] == 1e-4 and vae["length_buckets"] == 0
+    assert (vae["joint_space"], vae["joint_weight"]) == ("global", 1.0)  # MLD's joint loss
 
 
 def test_dotted_override_parses_yaml_values_and_keeps_the_rest():

@@ -270,7 +270,7 @@ def test_sample_mld_guidance_and_latent_scale(schedule: NoiseSchedule) -> None:
 
 
 # --------------------------------------------------------------------------------------------------
-# Word-token conditioning (text_tokens=True)
+# Word-token conditioning (word_tokens="sequence" | "cross_attention")
 # --------------------------------------------------------------------------------------------------
 
 
@@ -280,9 +280,10 @@ def _words(b: int, n: int, seed: int = 5) -> tuple[torch.Tensor, torch.Tensor]:
     return tokens, mask
 
 
-def test_word_tokens_padding_and_order() -> None:
+@pytest.mark.parametrize("word_tokens", ["sequence", "cross_attention"])
+def test_word_tokens_padding_and_order(word_tokens: str) -> None:
     """Padded word tokens change nothing; the order of the real ones does (a pooled mean cannot see it)."""
-    net = _denoiser(text_tokens=True, token_dim=12).eval()
+    net = _denoiser(word_tokens=word_tokens, token_dim=12).eval()
     z, t, text = torch.randn(3, L, C, generator=_gen(0)), torch.tensor([5, 400, 999]), torch.randn(3, E)
     tokens, mask = _words(3, 6)
     base = net(z, t, text, text_tokens=tokens, text_mask=mask)
@@ -295,14 +296,19 @@ def test_word_tokens_padding_and_order() -> None:
     out = net(z, t, text, text_tokens=swapped, text_mask=mask)
     assert not torch.allclose(out[0], base[0]) and torch.equal(out[1:], base[1:])
     _, hidden = net.run(z, t, text, text_tokens=tokens, text_mask=mask)
-    assert hidden[0].shape == (3, L + 2 + 6, 16)
+    assert hidden[0].shape == (3, L + 2 + (6 if word_tokens == "sequence" else 0), 16)
+    no_words = net(z, t, text, text_tokens=tokens, text_mask=torch.zeros_like(mask))  # the null caption's case
+    assert torch.isfinite(no_words).all() and not torch.allclose(no_words, base)
     with pytest.raises(ValueError, match="text_tokens"):
         net(z, t, text)
+    with pytest.raises(ValueError, match="word_tokens"):
+        _denoiser(word_tokens="concat")
 
 
-def test_word_tokens_null_caption_in_loss_and_sampler(schedule: NoiseSchedule) -> None:
+@pytest.mark.parametrize("word_tokens", ["sequence", "cross_attention"])
+def test_word_tokens_null_caption_in_loss_and_sampler(schedule: NoiseSchedule, word_tokens: str) -> None:
     """The unconditional pass is the null embedding with no word tokens, in training and in CFG."""
-    net, vae = _denoiser(text_tokens=True, token_dim=12).eval(), _vae().eval()
+    net, vae = _denoiser(word_tokens=word_tokens, token_dim=12).eval(), _vae().eval()
     text, lengths = torch.randn(3, E, generator=_gen(0)), torch.tensor([8, 5, 3])
     tokens, mask = _words(3, 6)
     z0 = torch.randn(3, L, C, generator=_gen(1))

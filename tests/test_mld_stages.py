@@ -77,12 +77,12 @@ def test_latent_cache_is_each_items_own_posterior(trained):
 
 
 def test_latent_items_carry_their_captions_word_tokens(trained):
-    """With text_tokens the item's word tokens are its drawn caption's, zero-padded; a batch is cut
+    """With word tokens the item's word tokens are its drawn caption's, zero-padded; a batch is cut
     to its longest caption."""
     import torch
 
     config = train_mld.loop_config(trained)
-    assert config["model"]["text_tokens"] and config["model"]["token_dim"] == 384
+    assert config["model"]["word_tokens"] != "none" and config["model"]["token_dim"] == 384
     data = train_mld.dataset(config)
     torch.manual_seed(3)
     items = [data[k] for k in range(8)]
@@ -114,7 +114,7 @@ def test_mld_generator_is_seeded_and_zero_padded(trained):
     np.testing.assert_array_equal(a, b)
     assert not np.allclose(a, c)
     reordered = TextBatch(text.texts, text.pooled, [words[0][::-1], words[1], words[2]])
-    d = gen.sample(reordered, lengths, 1)  # the denoiser sees word order (text_tokens)
+    d = gen.sample(reordered, lengths, 1)  # the denoiser sees word order (word_tokens)
     assert not np.allclose(a[0], d[0]) and np.allclose(a[1:], d[1:], atol=1e-5)
     assert not a[1, 24:].any() and not a[2, 32:].any() and np.abs(a[1, :24]).sum() > 0
 
