@@ -97,6 +97,9 @@ def test_latent_items_carry_their_captions_word_tokens(trained):
     batch = train_mld.collate_words(items)
     longest = max(int(item["token_mask"].sum()) for item in items)
     assert batch["tokens"].shape == (8, longest, 384) and batch["token_mask"].shape == (8, longest)
+    for k, item in enumerate(items):  # trimming removed padding only
+        torch.testing.assert_close(batch["tokens"][k], item["tokens"][:longest], atol=0, rtol=0)
+        assert torch.equal(batch["token_mask"][k], item["token_mask"][:longest])
 
 
 def test_mld_generator_is_seeded_and_zero_padded(trained):
