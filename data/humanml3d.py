@@ -1,6 +1,7 @@
-"""Reader and writer of the HumanML3D dataset layout.
+"""Reader of the HumanML3D dataset layout, with the records and checks its writer shares.
 
-Layout under a dataset ``root`` (HumanML3D's, see DESIGN.md "Dataset layout")::
+The writer is :mod:`data.humanml3d_writer`. Layout under a dataset ``root`` (HumanML3D's, see
+DESIGN.md "Dataset layout")::
 
     new_joints/<id>.npy       (T, J, 3) float32 global joint positions   } at least one
     new_joint_vecs/<id>.npy   (T, 12J-1) float32 features                 } of the two
@@ -39,11 +40,7 @@ HumanML3D data.
 from __future__ import annotations
 
 import math
-import os
 import re
-import shutil
-import uuid
-import warnings
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -185,25 +182,6 @@ def _check_time(value: float, name: str) -> float:
 # --------------------------------------------------------------------------------------------
 
 
-@dataclass
-class Clip:
-    """One motion with its captions, as given to :func:`write_dataset`.
-
-    Attributes:
-        clip_id: file stem (letters, digits, ``_``, ``-``, ``.``; not starting with ``.``).
-        captions: at least one caption.
-        joints: (T, J, 3) global joint positions, written to ``new_joints/``.
-        features: (T', 12J-1) features, written to ``new_joint_vecs/``.
-        action: optional action label, written to ``actions.txt``.
-    """
-
-    clip_id: str
-    captions: list[Caption]
-    joints: np.ndarray | None = None
-    features: np.ndarray | None = None
-    action: str | None = None
-
-
 @dataclass(frozen=True)
 class Problem:
     """A defect in the input: ``path`` is the file at fault (``file:line`` for a line)."""
@@ -294,7 +272,7 @@ class SplitData:
 
 
 # --------------------------------------------------------------------------------------------
-# Validation helpers shared by reader and writer
+# Validation shared by the reader and the writer
 # --------------------------------------------------------------------------------------------
 
 
@@ -307,13 +285,13 @@ def clip_id_problem(clip_id: object) -> str | None:
     return None
 
 
-def _check_split_name(split: str) -> None:
+def check_split_name(split: str) -> None:
     """Raise ValueError unless ``split`` is a plain split name (file ``<split>.txt``)."""
     if not isinstance(split, str) or not _SPLIT_NAME_RE.fullmatch(split) or split == "actions":
         raise ValueError(f"invalid split name {split!r}")
 
 
-def _array_problem(arr: np.ndarray, skeleton: Skeleton | None, kind: str) -> str | None:
+def array_problem(arr: np.ndarray, skeleton: Skeleton | None, kind: str) -> str | None:
     """Why ``arr`` is not a valid joints/features array, or None. ``kind``: joints|features."""
     if not (np.issubdtype(arr.dtype, np.floating) or np.issubdtype(arr.dtype, np.integer)):
         return f"dtype {arr.dtype} is not a real number type"
@@ -330,7 +308,7 @@ def _array_problem(arr: np.ndarray, skeleton: Skeleton | None, kind: str) -> str
     return None
 
 
-def _to_float32(arr: np.ndarray) -> np.ndarray:
+def to_float32(arr: np.ndarray) -> np.ndarray:
     """float32 copy; values beyond float32's range become inf (and are then reported)."""
     with np.errstate(over="ignore"):
         return arr.astype(np.float32)
@@ -385,10 +363,10 @@ def _read_motion(path: Path, skeleton: Skeleton, kind: str) -> tuple[np.ndarray 
         arr = load_npy(path)
     except (OSError, ValueError) as exc:
         return None, Problem(str(path), f"unreadable or corrupt .npy: {exc}")
-    reason = _array_problem(arr, skeleton, kind)
+    reason = array_problem(arr, skeleton, kind)
     if reason is None and arr.dtype != np.float32:
-        arr = _to_float32(arr)
-        reason = _array_problem(arr, skeleton, kind)  # float64 -> float32 may overflow to inf
+        arr = to_float32(arr)
+        reason = array_problem(arr, skeleton, kind)  # float64 -> float32 may overflow to inf
     if reason is not None:
         return None, Problem(str(path), reason)
     return arr, None
@@ -449,7 +427,7 @@ def parse_split_ids(root: Path, split: str) -> tuple[list[str], list[Problem]]:
     Raises:
         DatasetError: the split file is missing, unreadable or not UTF-8.
     """
-    _check_split_name(split)
+    check_split_name(split)
     path = Path(root) / f"{split}.txt"
     text, problem = _decode_text(path, "split file not found")
     if problem:
@@ -709,182 +687,3 @@ def read_splits(
     if problems:
         raise DatasetError(list(dict.fromkeys(problems)), f"splits {list(splits)} of {root}")
     return result
-
-
-# --------------------------------------------------------------------------------------------
-# write_dataset
-# --------------------------------------------------------------------------------------------
-
-
-def _clip_problems(clip: object, seen: set[str], skeleton: Skeleton | None, dims: dict[str, int]) -> list[Problem]:
-    """Every reason ``clip`` cannot be written; ``dims`` pins J / feature dim across clips."""
-    if not isinstance(clip, Clip):
-        return [Problem(repr(clip)[:80], f"not a Clip: {type(clip).__name__}")]
-    where = f"clip {clip.clip_id!r}"
-    reasons = [clip_id_problem(clip.clip_id)]
-    if isinstance(clip.clip_id, str) and clip.clip_id in seen:
-        reasons.append("duplicate clip id")
-    reasons.append(_captions_problem(clip.captions))
-    reasons.append(_action_problem(clip.action))
-    if clip.joints is None and clip.features is None:
-        reasons.append("neither joints nor features")
-    for kind, arr in (("joints", clip.joints), ("features", clip.features)):
-        if arr is not None:
-            reasons.append(_write_array_problem(kind, arr, skeleton, dims))
-    return [Problem(where, reason) for reason in reasons if reason]
-
-
-def _captions_problem(captions: object) -> str | None:
-    """Why a clip's caption list cannot be written, or None."""
-    if not isinstance(captions, list | tuple) or not captions:
-        return "no captions"
-    if not all(isinstance(c, Caption) for c in captions):
-        return "captions must be Caption objects"
-    return None
-
-
-def _action_problem(action: object) -> str | None:
-    """Why an action label cannot be written to actions.txt, or None."""
-    if action is None:
-        return None
-    if not isinstance(action, str) or not action.strip() or action != action.strip() or "\n" in action:
-        return f"invalid action label {action!r}"
-    return None
-
-
-def _write_array_problem(kind: str, arr: object, skeleton: Skeleton | None, dims: dict[str, int]) -> str | None:
-    """Why a joints/features array cannot be written, or None; records the first J / dim seen."""
-    if not isinstance(arr, np.ndarray):
-        return f"{kind} must be a numpy array, got {type(arr).__name__}"
-    reason = _array_problem(arr, skeleton, kind)
-    if reason is None and arr.dtype != np.float32:
-        reason = _array_problem(_to_float32(arr), skeleton, kind)
-    if reason is None and skeleton is None:
-        joints = arr.shape[1] if kind == "joints" else (arr.shape[1] + 1) // 12
-        first = dims.setdefault("J", joints)
-        if joints != first:
-            reason = f"wrong shape {arr.shape}: {joints} joints, other clips have {first}"
-    return f"{kind}: {reason}" if reason else None
-
-
-def _split_problems(splits: Mapping[str, Sequence[str]], written: set[str]) -> list[Problem]:
-    """Ids in the splits that are not written clips, and ids repeated within a split."""
-    problems = []
-    for split, ids in splits.items():
-        counts: dict[str, int] = {}
-        for clip_id in ids:
-            counts[clip_id] = counts.get(clip_id, 0) + 1
-        for clip_id, count in counts.items():
-            if clip_id not in written:
-                problems.append(Problem(f"{split}.txt", f"id {clip_id!r} is not among the clips"))
-            if count > 1:
-                problems.append(Problem(f"{split}.txt", f"id {clip_id!r} listed {count} times"))
-    return problems
-
-
-def _write_clip(tmp: Path, clip: Clip) -> None:
-    """Write one validated clip's motion files and caption file under ``tmp``."""
-    for sub, arr in ((JOINTS_DIR, clip.joints), (FEATURES_DIR, clip.features)):
-        if arr is not None:
-            with open(tmp / sub / f"{clip.clip_id}.npy", "wb") as f:
-                np.lib.format.write_array(f, np.ascontiguousarray(arr, dtype=np.float32), allow_pickle=False)
-    text = "".join(caption.to_line() + "\n" for caption in clip.captions)
-    (tmp / TEXTS_DIR / f"{clip.clip_id}.txt").write_text(text, encoding="utf-8")
-
-
-def _write_lines(path: Path, lines: Iterable[str]) -> None:
-    """Write ``lines`` one per line, UTF-8, '\\n' endings."""
-    path.write_text("".join(f"{line}\n" for line in lines), encoding="utf-8")
-
-
-def _write_into(
-    tmp: Path, clips: Iterable[Clip], splits: Mapping[str, Sequence[str]], skeleton: Skeleton | None
-) -> None:
-    """Validate and write everything into ``tmp``; raises DatasetError listing every problem."""
-    for sub in (JOINTS_DIR, FEATURES_DIR, TEXTS_DIR):
-        (tmp / sub).mkdir()
-    problems: list[Problem] = []
-    written: set[str] = set()
-    actions: dict[str, str] = {}
-    dims: dict[str, int] = {}
-    for clip in clips:
-        clip_problems = _clip_problems(clip, written, skeleton, dims)
-        if isinstance(clip, Clip) and isinstance(clip.clip_id, str):
-            written.add(clip.clip_id)
-        if clip_problems:
-            problems += clip_problems
-        elif not problems:  # once anything is wrong, only validate the rest
-            _write_clip(tmp, clip)
-            if clip.action is not None:
-                actions[clip.clip_id] = clip.action
-    problems += _split_problems(splits, written)
-    if problems:
-        raise DatasetError(problems, "write_dataset input")
-    for split, ids in splits.items():
-        _write_lines(tmp / f"{split}.txt", ids)
-    if actions:
-        _write_lines(tmp / ACTIONS_FILE, (f"{k},{v}" for k, v in actions.items()))
-
-
-def _replace_dir(tmp: Path, root: Path) -> None:
-    """Move ``tmp`` to ``root``; an existing ``root`` is set aside and deleted only after success.
-
-    POSIX cannot swap two directories atomically: between the two renames ``root`` is briefly
-    absent, but it is never partially written.
-    """
-    if not root.exists():
-        os.rename(tmp, root)
-        return
-    old = root.parent / f".{root.name}.old-{uuid.uuid4().hex[:12]}"
-    os.rename(root, old)
-    try:
-        os.rename(tmp, root)
-    except BaseException:
-        os.rename(old, root)
-        raise
-    shutil.rmtree(old, ignore_errors=True)
-    if old.exists():
-        warnings.warn(f"could not remove the previous dataset at {old}", stacklevel=3)
-
-
-def write_dataset(
-    root: Path,
-    clips: Iterable[Clip],
-    splits: Mapping[str, Sequence[str]],
-    *,
-    skeleton: Skeleton | None = None,
-) -> None:
-    """Write a HumanML3D-layout dataset atomically.
-
-    Everything is written into a temporary directory beside ``root`` (``.<name>.tmp-*``), which
-    is renamed to ``root`` only once every clip and split is valid and written; an existing
-    ``root`` is replaced only then. On any failure the temporary directory is removed and an
-    existing ``root`` is untouched.
-
-    Args:
-        root: dataset directory to create or replace.
-        clips: clips to write (may be a generator; consumed once).
-        splits: split name -> ids, written to ``<split>.txt`` in the given order.
-        skeleton: if given, arrays must match its joint count / feature dim exactly; otherwise
-            they must agree with each other.
-
-    Raises:
-        ValueError: invalid split name.
-        NotADirectoryError: ``root`` exists and is not a directory.
-        DatasetError: bad ids (invalid, duplicate, unknown in a split), empty captions,
-            non-finite or mis-shaped arrays, invalid action labels -- all of them listed.
-    """
-    root = Path(root)
-    for split in splits:
-        _check_split_name(split)
-    if root.exists() and not root.is_dir():
-        raise NotADirectoryError(f"{root} exists and is not a directory")
-    root.parent.mkdir(parents=True, exist_ok=True)
-    tmp = root.parent / f".{root.name}.tmp-{uuid.uuid4().hex[:12]}"
-    tmp.mkdir()
-    try:
-        _write_into(tmp, clips, splits, skeleton)
-        _replace_dir(tmp, root)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise

@@ -4,7 +4,7 @@ A stand-in for HumanML3D so that every stage and metric has real work to do with
 downloading anything (DESIGN.md, "The embedded dataset"). Each motion is
 
 - a random adult body (:func:`data.synthetic_motion.sample_body`),
-- a program of 1-3 actions from the library (:data:`data.synthetic_motion.ACTIONS`) that follow
+- a program of 1-3 actions from the library (:data:`data.synthetic_library.ACTIONS`) that follow
   each other from posture to posture ("walks forward, then turns around and sits down"); a
   carrier action (walking, jogging, circling, turning) may take an upper-body action on top
   ("walks while waving the right hand"),
@@ -28,22 +28,13 @@ from dataclasses import dataclass, field, fields, replace
 import numpy as np
 from scipy.ndimage import gaussian_filter1d
 
-from data.humanml3d import Caption, Clip
+from data.humanml3d import Caption
+from data.humanml3d_writer import Clip
 from data.physics import floating, ground_penetration, skating_frames
 from data.skeleton import HUMANML3D
-from data.synthetic_motion import (
-    ACTIONS,
-    FPS,
-    Piece,
-    Segment,
-    State,
-    assemble,
-    build_idle,
-    build_segment,
-    initial_state,
-    sample_body,
-    style_noise,
-)
+from data.synthetic_library import ACTIONS, Segment, build_segment
+from data.synthetic_motion import FPS, Piece, State, assemble, initial_state, sample_body, style_noise
+from data.synthetic_postures import build_idle
 from data.synthetic_text import describe, mirror_caption
 
 SPLITS = ("train", "val", "test")

@@ -21,7 +21,8 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from data.humanml3d import Caption
-from data.synthetic_motion import FPS, Segment
+from data.synthetic_library import Segment
+from data.synthetic_motion import FPS
 
 # --- lexicon ---------------------------------------------------------------------------------
 

@@ -22,7 +22,7 @@ from pathlib import Path
 from tqdm import tqdm
 
 from data.atomic import atomic_directory
-from data.humanml3d import write_dataset
+from data.humanml3d_writer import write_dataset
 from data.render import contact_sheet, render_animation
 from data.skeleton import HUMANML3D
 from data.synthetic import SyntheticConfig, SyntheticMotion, dataset_stats, generate, make_splits

@@ -60,7 +60,8 @@ def make_fixture_dataset(root, clips: int = 120, test_from: int = 75):
     """
     import numpy as np
 
-    from data.humanml3d import Caption, Clip, write_dataset
+    from data.humanml3d import Caption
+    from data.humanml3d_writer import Clip, write_dataset
 
     base = np.load(FIXTURE_JOINTS)
     out = []

@@ -1,6 +1,7 @@
 """Atomic directory writes: all or nothing, previous output kept on failure."""
 
 import os
+import shutil
 from pathlib import Path
 
 import pytest
@@ -48,3 +49,12 @@ def test_failed_rename_restores_previous_output(tmp_path, monkeypatch):
         (tmp / "new.txt").write_text("new")
     assert (final / "old.txt").read_text() == "old"
     assert [p.name for p in tmp_path.iterdir()] == ["out"]
+
+
+def test_previous_output_that_cannot_be_removed_is_reported(tmp_path, monkeypatch):
+    final = tmp_path / "out"
+    final.mkdir()
+    monkeypatch.setattr(shutil, "rmtree", lambda path, ignore_errors=False: None)
+    with pytest.warns(UserWarning, match="could not remove the previous out"), atomic_directory(final) as tmp:
+        (tmp / "new.txt").write_text("new")
+    assert (final / "new.txt").read_text() == "new"

@@ -7,7 +7,8 @@ import numpy as np
 import pytest
 
 from data.features import features_from_joints
-from data.humanml3d import Caption, Clip, write_dataset
+from data.humanml3d import Caption
+from data.humanml3d_writer import Clip, write_dataset
 from data.skeleton import HUMANML3D
 from data.store import read_split
 from pipelines.config import compose_params

@@ -1,4 +1,4 @@
-"""Tests of the HumanML3D-layout reader and writer (data/humanml3d.py)."""
+"""Tests of the HumanML3D-layout reader and writer (data/humanml3d.py, data/humanml3d_writer.py)."""
 
 from __future__ import annotations
 
@@ -13,7 +13,6 @@ import pytest
 
 from data.humanml3d import (
     Caption,
-    Clip,
     DatasetError,
     MotionItem,
     Problem,
@@ -21,8 +20,8 @@ from data.humanml3d import (
     read_captions,
     read_split,
     read_splits,
-    write_dataset,
 )
+from data.humanml3d_writer import Clip, write_dataset
 from data.skeleton import HUMANML3D, KIT, Skeleton
 
 # --------------------------------------------------------------------------------------------

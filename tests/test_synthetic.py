@@ -23,7 +23,8 @@ from data.synthetic import (
     mirror_joints,
     mirror_motion,
 )
-from data.synthetic_motion import ACTIONS, LABELS, Segment, initial_state, realize, sample_body
+from data.synthetic_library import ACTIONS, LABELS, Segment
+from data.synthetic_motion import initial_state, realize, sample_body
 from data.synthetic_text import LEXICON, mirror_caption
 from stages import make_dataset
 
