@@ -8,6 +8,7 @@ runner seeds per rank and saves in its checkpoints, so a resumed run draws the s
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
@@ -90,3 +91,11 @@ def collate_trimmed(items: list[dict[str, torch.Tensor]]) -> dict[str, torch.Ten
     batch = default_collate(items)
     batch["motion"] = batch["motion"][:, : int(batch["length"].max())]
     return batch
+
+
+def pad_motions(motions: Sequence[np.ndarray], lengths: np.ndarray) -> np.ndarray:
+    """Stack (L_b, D) motions into (B, max L, D) float32, zero past each length."""
+    out = np.zeros((len(motions), int(max(lengths, default=0)), motions[0].shape[1] if motions else 0), np.float32)
+    for b, (motion, length) in enumerate(zip(motions, lengths, strict=True)):
+        out[b, :length] = motion[:length]
+    return out

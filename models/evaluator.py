@@ -583,3 +583,18 @@ class T2MEvaluator(nn.Module):
     ) -> tuple[torch.Tensor, torch.Tensor]:
         """``(embed_text(...), embed_motion(...))``, both (B, output_dim), row i a caption/motion pair."""
         return self.embed_text(word_ids, pos_onehot, sent_lens), self.embed_motion(features_norm, lengths)
+
+
+class MovementAutoencoder(nn.Module):
+    """The evaluator's movement encoder with a decoder, for pretraining (DDP needs one forward)."""
+
+    def __init__(self, evaluator: T2MEvaluator) -> None:
+        super().__init__()
+        self.evaluator = evaluator
+        self.decoder = evaluator.make_movement_decoder()
+
+    def forward(self, window: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """(B, W, D) raw -> (reconstruction, normalised target, latents), (B, W, D), (B, W, D), (B, W/4, C)."""
+        x = self.evaluator.normalize(window)
+        recon, z = self.evaluator.autoencode(x, self.decoder)
+        return recon, x, z

@@ -91,6 +91,25 @@ def load_params(argv: Sequence[str] | None = None, path: Path = PARAMS_PATH) -> 
     return apply_overrides(params, dotted)
 
 
+def restrict_params(params: dict[str, Any], keys: Sequence[str]) -> dict[str, Any]:
+    """Only the dotted ``keys`` of ``params`` (a section or a key in one); ConfigError if one is missing.
+
+    A stage reads only what it declares, so its DVC ``params`` list is complete by construction.
+    """
+    result: dict[str, Any] = {}
+    for key in keys:
+        source, target = params, result
+        parts = key.split(".")
+        for depth, part in enumerate(parts):
+            if not isinstance(source, dict) or part not in source:
+                raise ConfigError(f"params have no {'.'.join(parts[: depth + 1])!r}")
+            source = source[part]
+            if depth < len(parts) - 1:
+                target = target.setdefault(part, {})
+        target[parts[-1]] = source
+    return result
+
+
 def dump_params(params: dict[str, Any]) -> str:
     """YAML text of params as written to ``params.yaml`` (key order kept)."""
     header = "# Generated from conf/ by `python -m pipelines.config` (or `dvc exp run`). Edit conf/.\n"

@@ -13,6 +13,10 @@ One replication:
    (skating, penetration, floating) of the motions recovered as joints.
 
 Each metric is reported as mean and 1.96*std/sqrt(R) over R replications (``<key>_ci``).
+The draws and the evaluator's embeddings of the captions and of the reference motions
+(:class:`Reference`) are computed once and saved by the ``Real`` row's stage; every model
+family's stage loads them. Each row draws its Diversity and MultiModality pairs from its own
+random stream (:func:`row_rng`), so its metrics do not depend on the rows evaluated beside it.
 AITS (seconds per sentence, batch 1, warm, loading excluded) and ms per frame are timed once
 per generator on ``timing_sentences`` test captions.
 """
@@ -20,6 +24,7 @@ per generator on ``timing_sentences`` test captions.
 from __future__ import annotations
 
 import time
+import zlib
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -28,6 +33,7 @@ import numpy as np
 import torch
 
 from data.features import recover_from_ric
+from data.motion_dataset import pad_motions
 from data.skeleton import Skeleton
 from data.store import StoredItem
 from data.vocab import WordVocab
@@ -35,7 +41,6 @@ from models import metrics as M
 from models.evaluator import EvaluatorConfig, T2MEvaluator
 from models.generator import Generator, Reconstructor, TextBatch
 from pipelines.checkpoint import load_final_model
-from pipelines.generators import pad_motions
 
 REAL = "Real"
 
@@ -52,7 +57,6 @@ class EvalConfig:
     mm_times: int = 10
     timing_sentences: int = 10
     unit_length: int = 4
-    max_words: int = 20
     seed: int = 0
 
 
@@ -198,29 +202,94 @@ def time_generator(gen: Generator, d: Draw, n: int) -> dict[str, float]:
     return {"AITS_s": float(np.mean(seconds)), "ms_per_frame": 1000.0 * float(np.sum(seconds)) / float(np.sum(frames))}
 
 
-def replicate(generators: Sequence[Generator], items: Sequence[StoredItem], mean: np.ndarray, std: np.ndarray,
-              embedder: MotionEmbedder, skeleton: Skeleton, cfg: EvalConfig, r: int,
-              reconstructors: Sequence[Reconstructor] = ()) -> dict[str, dict[str, float]]:
-    """Metrics of the Real row, every reconstructor and every generator for replication ``r``."""
+@dataclass
+class Reference:
+    """One replication: the draw every row answers, its caption embeddings and the FID reference.
+
+    Attributes:
+        draw: step 1 of the replication (captions, crop lengths, real crops).
+        text_emb: (B, E) evaluator embeddings of the draw's captions.
+        ref_mu, ref_sigma: Gaussian statistics of a second, independent draw of real motions.
+    """
+
+    draw: Draw
+    text_emb: np.ndarray
+    ref_mu: np.ndarray
+    ref_sigma: np.ndarray
+
+
+def _replication_draws(items: Sequence[StoredItem], cfg: EvalConfig, r: int) -> tuple[Draw, Draw]:
     rng = np.random.default_rng([cfg.seed, r])
-    d = draw(items, rng, cfg.unit_length)
-    ref_draw = draw(items, rng, cfg.unit_length)
-    ref = M.gaussian_statistics(embedder.motions(ref_draw.real, ref_draw.lengths))
-    text_emb = embedder.texts(d.tokens)
-    rows = {REAL: d.real}
+    return draw(items, rng, cfg.unit_length), draw(items, rng, cfg.unit_length)
+
+
+def references(items: Sequence[StoredItem], embedder: MotionEmbedder, cfg: EvalConfig) -> list[Reference]:
+    """The ``replications`` references of the protocol (a pure function of the items and ``cfg.seed``)."""
+    if len(items) < cfg.group_size:
+        raise ValueError(f"the test split has {len(items)} items, fewer than one R-precision group "
+                         f"({cfg.group_size})")
+    refs = []
+    for r in range(cfg.replications):
+        d, ref_draw = _replication_draws(items, cfg, r)
+        mu, sigma = M.gaussian_statistics(embedder.motions(ref_draw.real, ref_draw.lengths))
+        refs.append(Reference(d, embedder.texts(d.tokens), mu, sigma))
+    return refs
+
+
+def save_references(path: Path, refs: Sequence[Reference]) -> None:
+    """The embeddings of ``refs`` as one ``.npz`` (no pickles); the draws are recomputed on load."""
+    arrays = {}
+    for r, ref in enumerate(refs):
+        arrays |= {f"lengths_{r}": ref.draw.lengths, f"text_emb_{r}": ref.text_emb,
+                   f"ref_mu_{r}": ref.ref_mu, f"ref_sigma_{r}": ref.ref_sigma}
+    np.savez(path, **arrays)
+
+
+def load_references(path: Path, items: Sequence[StoredItem], cfg: EvalConfig) -> list[Reference]:
+    """:func:`references` as saved by :func:`save_references`; an error if they belong to other items or cfg."""
+    refs = []
+    with np.load(path, allow_pickle=False) as saved:
+        if f"lengths_{cfg.replications - 1}" not in saved or f"lengths_{cfg.replications}" in saved:
+            raise ValueError(f"{path}: saved for another number of replications than {cfg.replications}")
+        for r in range(cfg.replications):
+            d, _ = _replication_draws(items, cfg, r)
+            if not np.array_equal(saved[f"lengths_{r}"], d.lengths):
+                raise ValueError(f"{path}: saved for other test items or another evaluate.seed")
+            refs.append(Reference(d, saved[f"text_emb_{r}"], saved[f"ref_mu_{r}"], saved[f"ref_sigma_{r}"]))
+    return refs
+
+
+def row_rng(cfg: EvalConfig, r: int, row: str) -> np.random.Generator:
+    """The random stream of one row in one replication (Diversity and MultiModality pairs).
+
+    Seeded by the row's name, so a row's metrics do not depend on which other rows are evaluated
+    with it: each model family is evaluated by its own stage.
+    """
+    return np.random.default_rng([cfg.seed, r, zlib.crc32(row.encode())])
+
+
+def _row_metrics(name: str, raw: np.ndarray, ref: Reference, embedder: MotionEmbedder, skeleton: Skeleton,
+                 cfg: EvalConfig, rng: np.random.Generator) -> dict[str, float]:
+    motion_emb = embedder.motions(raw, ref.draw.lengths)
+    return {**text_metrics(ref.text_emb, motion_emb, (ref.ref_mu, ref.ref_sigma), cfg, rng),
+            **physical(raw, ref.draw.lengths, skeleton)}
+
+
+def replicate(ref: Reference, r: int, embedder: MotionEmbedder, skeleton: Skeleton, cfg: EvalConfig,
+              mean: np.ndarray, std: np.ndarray, generators: Sequence[Generator] = (),
+              reconstructors: Sequence[Reconstructor] = (), real: bool = False) -> dict[str, dict[str, float]]:
+    """Metrics of the Real row (``real``), every reconstructor and every generator for replication ``r``."""
+    d, result = ref.draw, {}
+    if real:
+        result[REAL] = _row_metrics(REAL, d.real, ref, embedder, skeleton, cfg, row_rng(cfg, r, REAL))
     for rec in reconstructors:
-        rows[rec.name] = denormalise(rec.reconstruct((d.real - mean) / std, d.lengths), mean, std)
+        raw = denormalise(rec.reconstruct((d.real - mean) / std, d.lengths), mean, std)
+        result[rec.name] = _row_metrics(rec.name, raw, ref, embedder, skeleton, cfg, row_rng(cfg, r, rec.name))
+        result[rec.name]["MPJPE_mm"] = mpjpe_mm(d.real, raw, d.lengths, skeleton.joints_num)
     for gen in generators:
-        rows[gen.name] = denormalise(gen.sample(d.text, d.lengths, seed=r), mean, std)
-    result = {}
-    for name, raw in rows.items():
-        result[name] = {
-            **text_metrics(text_emb, embedder.motions(raw, d.lengths), ref, cfg, rng),
-            **physical(raw, d.lengths, skeleton),
-        }
-    for rec in reconstructors:
-        result[rec.name]["MPJPE_mm"] = mpjpe_mm(d.real, rows[rec.name], d.lengths, skeleton.joints_num)
-    for gen in generators:
+        rng = row_rng(cfg, r, gen.name)
+        raw = denormalise(gen.sample(d.text, d.lengths, seed=r), mean, std)
+        result[gen.name] = _row_metrics(gen.name, raw, ref, embedder, skeleton, cfg, rng)
         if gen.stochastic and cfg.mm_repeats > cfg.mm_times:
             result[gen.name]["MultiModality"] = multimodality(gen, d, embedder, mean, std, cfg, r, rng)
     return result
@@ -238,16 +307,13 @@ def aggregate(per_replication: Sequence[Mapping[str, Mapping[str, float]]]) -> d
     return table
 
 
-def evaluate(generators: Sequence[Generator], items: Sequence[StoredItem], mean: np.ndarray, std: np.ndarray,
-             embedder: MotionEmbedder, skeleton: Skeleton, cfg: EvalConfig,
-             reconstructors: Sequence[Reconstructor] = ()) -> dict[str, dict[str, float]]:
-    """The full protocol: R replications, aggregated, plus timings of each generator."""
-    if len(items) < cfg.group_size:
-        raise ValueError(f"the test split has {len(items)} items, fewer than one R-precision group "
-                         f"({cfg.group_size})")
-    reps = [replicate(generators, items, mean, std, embedder, skeleton, cfg, r, reconstructors)
-            for r in range(cfg.replications)]
-    table = aggregate(reps)
+def evaluate(refs: Sequence[Reference], items: Sequence[StoredItem], mean: np.ndarray, std: np.ndarray,
+             embedder: MotionEmbedder, skeleton: Skeleton, cfg: EvalConfig, generators: Sequence[Generator] = (),
+             reconstructors: Sequence[Reconstructor] = (), real: bool = False) -> dict[str, dict[str, float]]:
+    """The protocol over ``refs`` (one per replication), aggregated, plus timings of each generator."""
+    reps = [replicate(ref, r, embedder, skeleton, cfg, mean, std, generators, reconstructors, real)
+            for r, ref in enumerate(refs)]
+    table = aggregate(reps) if reps and reps[0] else {}
     timing_draw = draw(items, np.random.default_rng([cfg.seed, cfg.replications]), cfg.unit_length)
     for gen in generators:
         table[gen.name].update(time_generator(gen, timing_draw, cfg.timing_sentences))

@@ -24,10 +24,13 @@ every rank, loss history, start steps of every attempt).
 Runner keys read from the loop config (everything else is the stage's): ``seed``,
 ``batch_size`` (per worker), ``max_steps``, ``grad_clip`` (0 = off), ``lr_schedule``
 ("cosine" | "constant"), ``warmup_steps``, ``min_lr_ratio``, ``log_every``,
-``num_data_workers``, ``length_buckets``. Ray keys: see :class:`RayOptions`.
+``num_data_workers``, ``length_buckets`` (:class:`LoopSettings`; a stage's ``loop`` params
+group holds exactly these). Ray keys: see :class:`RayOptions`.
 
-Runs are named ``<stage>-<hash of loop config and worker count>``: the same params resume
-a killed run from Ray storage, changed params start afresh. ``ray.train.report`` is
+Runs are named ``<stage>-<hash of loop config, worker count and fingerprint>``, where the
+fingerprint (:mod:`pipelines.identity`) covers the code the stage imports and its inputs'
+contents: an interrupted run of the same params, code and inputs resumes from Ray storage;
+changed params, code or inputs start afresh from step 0. ``ray.train.report`` is
 called on all ranks only at checkpoint (and ``report_every``) steps, because a report
 blocks while the previous one waits for the controller's poll (2 s by default).
 """
@@ -157,6 +160,29 @@ class LoopSettings:
     def from_config(cls, config: Mapping[str, Any]) -> LoopSettings:
         """Pick the runner keys out of a stage's loop config (defaults for missing ones)."""
         return cls(**{f.name: config[f.name] for f in fields(cls) if f.name in config})
+
+    @classmethod
+    def parse(cls, section: Mapping[str, Any], where: str) -> LoopSettings:
+        """A stage's ``loop`` params group, validated: every key present, no other, types checked.
+
+        ``where`` names the group in errors (e.g. ``train_vae.loop``).
+        """
+        names = [f.name for f in fields(cls)]
+        unknown = sorted(set(section) - set(names))
+        missing = [name for name in names if name not in section]
+        if unknown or missing:
+            raise ValueError(f"{where}: unknown key(s) {unknown}, missing key(s) {missing}; "
+                             f"a loop group holds exactly {names}")
+        for f in fields(cls):
+            value, kind = section[f.name], type(f.default)
+            allowed = (int, float) if kind is float else kind  # an int is a valid float
+            if isinstance(value, bool) or not isinstance(value, allowed):
+                raise ValueError(f"{where}.{f.name}: expected {kind.__name__}, got {value!r}")
+        if section["lr_schedule"] not in ("cosine", "constant"):
+            raise ValueError(f"{where}.lr_schedule: {section['lr_schedule']!r} is not cosine or constant")
+        if section["batch_size"] < 1 or section["max_steps"] < 1:
+            raise ValueError(f"{where}: batch_size and max_steps must be >= 1")
+        return cls(**{f.name: section[f.name] for f in fields(cls)})
 
 
 @dataclass(frozen=True)
@@ -632,9 +658,10 @@ def ray_train_fn(loop_input: dict) -> None:
 # --------------------------------------------------------------------------- the driver
 
 
-def make_run_name(stage: str, loop_config: Mapping[str, Any], world_size: int) -> str:
-    """``<stage>-<10 hex>``: a stable hash of the params that change the result."""
-    blob = json.dumps({"config": loop_config, "world_size": world_size}, sort_keys=True, default=str)
+def make_run_name(stage: str, loop_config: Mapping[str, Any], world_size: int, fingerprint: str = "") -> str:
+    """``<stage>-<10 hex>``: a stable hash of what changes the result (params, workers, code and inputs)."""
+    blob = json.dumps({"config": loop_config, "world_size": world_size, "fingerprint": fingerprint},
+                      sort_keys=True, default=str)
     return f"{stage}-{hashlib.sha1(blob.encode()).hexdigest()[:10]}"
 
 
@@ -787,7 +814,7 @@ def summarise(history: Sequence[Mapping[str, Any]], state: Mapping[str, Any],
 
 def run_training(stage: str, spec: TrainSpec, loop_config: Mapping[str, Any],
                  ray_cfg: Mapping[str, Any] | None, out_dir: Path, storage: str | None = None, *,
-                 callbacks: Sequence[Any] = (), run_name: str | None = None) -> RunResult:
+                 callbacks: Sequence[Any] = (), run_name: str | None = None, fingerprint: str = "") -> RunResult:
     """Train ``spec`` under Ray Train (or in-process) and write the stage's outputs.
 
     Args:
@@ -799,17 +826,19 @@ def run_training(stage: str, spec: TrainSpec, loop_config: Mapping[str, Any],
         storage: Ray storage path/URI (absolute; outside DVC outs).
         callbacks: extra Ray Train callbacks (e.g. ``TuneReportCallback``).
         run_name: overrides ``<stage>-<params hash>`` (e.g. one name per Tune trial).
+        fingerprint: digest of the code and inputs (:func:`pipelines.identity.fingerprint`);
+            part of the run name, so a run resumes only from a run of the same code and inputs.
     """
     opts = RayOptions.from_dict(ray_cfg)
     storage = resolve_storage(storage or opts.storage)
     world = 1 if opts.in_process else opts.num_workers
-    name = run_name or make_run_name(stage, loop_config, world)
+    name = run_name or make_run_name(stage, loop_config, world, fingerprint)
     start = time.perf_counter()
     if opts.in_process:
         state, run_path = _fit_local(stage, spec, loop_config, opts, storage, name), None
     else:
         state, run_path = _fit_ray(stage, spec, loop_config, opts, storage, callbacks, name)
     meta = {"stage": stage, "run_name": name, "run_path": run_path, "attempts": state["attempts"],
-            "ray": asdict(opts), "config": dict(loop_config)}
+            "fingerprint": fingerprint, "ray": asdict(opts), "config": dict(loop_config)}
     metrics = write_outputs(Path(out_dir), stage, state, loop_config, meta, time.perf_counter() - start)
     return RunResult(name, Path(out_dir), metrics, list(state["history"]), list(state["attempts"]), run_path)

@@ -10,13 +10,13 @@ Params::
     sweep:
       settings: {num_samples, metric, mode, scheduler, grace_period, reduction_factor, max_t,
                  report_every, max_concurrent_trials, trial_cpus, max_failures, seed}
-      <stage>:                     # keys of params[<stage>] and how to vary them
+      <stage>:                     # keys of params[<stage>] (dotted into groups) and how to vary them
         lr: loguniform(1e-5, 1e-3)
-        batch_size: choice([16, 32])
+        loop.batch_size: choice([16, 32])
         margin: uniform(5, 15)
-        warmup_steps: randint(0, 100)    # upper bound excluded, as in tune.randint
-        seed: grid([0, 1, 2])            # every value, times num_samples
-        grad_clip: 0.5                   # a plain value: fixed for every trial; null: not varied
+        loop.warmup_steps: randint(0, 100)    # upper bound excluded, as in tune.randint
+        loop.seed: grid([0, 1, 2])            # every value, times num_samples
+        loop.grad_clip: 0.5                   # a plain value: fixed for every trial; null: not varied
 
 Dimension strings are parsed without ``eval`` (:func:`parse_dimension`: a function name and
 Python literals read by ``ast.literal_eval``).
@@ -54,6 +54,7 @@ How it runs (DESIGN.md "Facts about the stack"; reference/pipeline_stack.md sect
 from __future__ import annotations
 
 import ast
+import copy
 import hashlib
 import json
 import logging
@@ -209,14 +210,23 @@ def parse_dimension(key: str, spec: Any) -> Dimension | None:
     return Dimension(kind, args)
 
 
+def _has_key(section: Mapping[str, Any], dotted: str) -> bool:
+    node: Any = section
+    for part in dotted.split("."):
+        if not isinstance(node, Mapping) or part not in node:
+            return False
+        node = node[part]
+    return True
+
+
 def parse_space(stage: str, entries: Mapping[str, Any] | None, stage_params: Mapping[str, Any]) -> dict[str, Dimension]:
-    """Parse ``sweep.<stage>``: every key must be a key of ``params[<stage>]``; null entries are dropped."""
+    """Parse ``sweep.<stage>``: every key must be a (dotted) key of ``params[<stage>]``; null entries are dropped."""
     if not isinstance(entries, Mapping):
         raise SweepConfigError(f"sweep.{stage}: expected a mapping of {stage} keys to dimensions, got {entries!r}")
     space = {}
     for key, spec in entries.items():
         name = f"sweep.{stage}.{key}"
-        if key not in stage_params:
+        if not _has_key(stage_params, key):
             raise SweepConfigError(f"{name}: {key!r} is not a key of the {stage!r} params")
         dim = parse_dimension(name, spec)
         if dim is not None:
@@ -364,9 +374,14 @@ class SweepJob:
 
 
 def apply_trial(params: Mapping[str, Any], stage: str, values: Mapping[str, Any]) -> dict:
-    """A copy of ``params`` with the trial's ``values`` set in ``params[stage]``."""
-    params = dict(params)
-    params[stage] = {**params[stage], **values}
+    """A copy of ``params`` with the trial's ``values`` set in ``params[stage]`` (keys dotted into groups)."""
+    params = copy.deepcopy(dict(params))
+    for key, value in values.items():
+        *groups, last = key.split(".")
+        node = params[stage]
+        for group in groups:
+            node = node[group]
+        node[last] = value
     return params
 
 

@@ -37,11 +37,14 @@ from data.humanml3d import DatasetError, Problem, SplitData, read_split
 from data.skeleton import Skeleton, get_skeleton
 from data.store import StoredItem, write_split
 from data.text_encoders import TextEncoder, build_text_encoder
-from pipelines.config import REPO_ROOT, load_params
+from pipelines.cli import run_main
+from pipelines.config import REPO_ROOT
 
 SPLITS = ("train", "val", "test")
 FEATURE_VERSION = 1  # bump when the feature computation changes
 ENCODE_CHUNK = 1024  # captions per encoder call: bounds the (N, L, H) token array in memory
+
+PARAMS = ("data", "features")
 
 
 def read_dataset(root: Path, skeleton: Skeleton, data_cfg: dict[str, Any]) -> dict[str, SplitData]:
@@ -51,7 +54,7 @@ def read_dataset(root: Path, skeleton: Skeleton, data_cfg: dict[str, Any]) -> di
         try:
             splits[split] = read_split(
                 root, split, skeleton, source=data_cfg["source"], on_error=data_cfg["on_error"],
-                max_frames=data_cfg["max_frames"],
+                max_frames=data_cfg["feature_frames_below"],
             )
         except DatasetError as err:
             problems.extend(err.problems)
@@ -215,10 +218,9 @@ def run(params: dict[str, Any]) -> Path:
 
 
 def main(argv: Sequence[str] | None = None) -> None:
-    params = load_params(argv)
     os.environ.setdefault("TOKENIZERS_PARALLELISM", "false")
     try:
-        run(params)
+        run_main("extract_features", run, PARAMS, argv)
     except DatasetError as err:
         sys.exit(f"extract_features: bad input, nothing written.\n{err}")
 

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import argparse
 import sys
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -20,22 +20,11 @@ import numpy as np
 
 from data.render import render_animation, render_strip
 from data.skeleton import get_skeleton
-from models.generator import Generator
-from pipelines.config import REPO_ROOT, load_params
-from pipelines.generators import MLDGenerator, encode_prompts, motions_to_joints
-from stages.train_mld import load_mld
-from stages.train_vae import load_vae
+from pipelines.cli import artifacts_dir, repo_path
+from pipelines.config import load_params
+from pipelines.registry import FAMILIES, EvalContext, GenerateOptions, family
 
-
-def mld(params: dict[str, Any], steps: int | None, guidance: float | None) -> Generator:
-    artifacts = REPO_ROOT / params["paths"]["artifacts"]
-    denoiser, schedule, _ = load_mld(artifacts / "train_mld")
-    guidance = params["train_mld"]["guidance"] if guidance is None else guidance
-    steps = steps or 50
-    return MLDGenerator(f"MLD-DDIM{steps}", denoiser, load_vae(artifacts / "train_vae"), schedule, steps, guidance)
-
-
-MODELS: dict[str, Callable[[dict[str, Any], int | None, float | None], Generator]] = {"mld": mld}
+MODELS = sorted(name for name, entry in FAMILIES.items() if entry.generator is not None)
 
 
 def write_motion(joints: np.ndarray, path: Path, caption: str, skeleton_name: str) -> Path:
@@ -53,24 +42,23 @@ def write_motion(joints: np.ndarray, path: Path, caption: str, skeleton_name: st
 
 def generate(params: dict[str, Any], model: str, texts: Sequence[str], lengths: Sequence[int], out: Path,
              seed: int = 0, steps: int | None = None, guidance: float | None = None) -> list[Path]:
-    """Sample ``texts`` with ``model`` and write one file per text; returns the paths."""
-    if model not in MODELS:
-        raise ValueError(f"unknown model {model!r}; available: {sorted(MODELS)}")
-    features = REPO_ROOT / params["features"]["out"]
-    mean, std = np.load(features / "mean.npy"), np.load(features / "std.npy")
+    """Sample ``texts`` with the registry's ``model`` and write one file per text; returns the paths."""
+    if steps is not None and steps < 1:
+        raise ValueError(f"--steps {steps}: must be at least 1")
+    ctx = EvalContext(params, artifacts_dir(params), repo_path(params, "features.out"))
+    generator = family(model).build_generator(ctx, GenerateOptions(steps=steps, guidance=guidance))
     lengths = np.asarray(lengths)
-    generator = MODELS[model](params, steps, guidance)
-    motions = generator.sample(encode_prompts(texts, features), lengths, seed)
+    motions = generator.sample(ctx.store.encode_prompts(texts), lengths, seed)
     paths = [out] if len(texts) == 1 else [out.with_name(f"{out.stem}_{k}{out.suffix}") for k in range(len(texts))]
     return [write_motion(joints, path, text, params["data"]["skeleton"])
-            for joints, path, text in zip(motions_to_joints(motions, lengths, mean, std), paths, texts, strict=True)]
+            for joints, path, text in zip(ctx.store.to_joints(motions, lengths), paths, texts, strict=True)]
 
 
 def main(argv: Sequence[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description="Text to motion with a trained motionforge model.")
-    parser.add_argument("--model", default="mld", help=f"one of {sorted(MODELS)}")
+    parser.add_argument("--model", default="mld", choices=MODELS, help="model family (pipelines/registry.py)")
     parser.add_argument("--text", action="append", required=True, help="prompt (repeatable)")
-    parser.add_argument("--length", type=int, default=120, help="frames at 20 fps (40..196)")
+    parser.add_argument("--length", type=int, default=120, help="frames at 20 fps (4..196)")
     parser.add_argument("--out", type=Path, required=True)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--steps", type=int, default=None, help="sampling steps (model default if omitted)")

@@ -18,6 +18,7 @@ import json
 import time
 from collections.abc import Sequence
 from pathlib import Path
+from typing import Any
 
 from tqdm import tqdm
 
@@ -26,7 +27,8 @@ from data.humanml3d_writer import write_dataset
 from data.render import contact_sheet, render_animation
 from data.skeleton import HUMANML3D
 from data.synthetic import SyntheticConfig, SyntheticMotion, dataset_stats, generate, make_splits
-from pipelines.config import REPO_ROOT, load_params
+from pipelines.cli import run_main
+from pipelines.config import REPO_ROOT
 
 SHEET_PANELS = 20
 
@@ -70,11 +72,18 @@ def build_dataset(root: Path, config: SyntheticConfig, seed: int) -> dict:
     return stats
 
 
+PARAMS = ("seed", "synthetic", "data.root")
+
+
+def run(params: dict[str, Any]) -> dict[str, Any]:
+    """The stage with params: the dataset under ``data.root``; returns its statistics."""
+    config = SyntheticConfig.from_params(params["synthetic"])
+    return build_dataset((REPO_ROOT / params["data"]["root"]).resolve(), config, int(params["seed"]))
+
+
 def main(argv: Sequence[str] | None = None) -> None:
     """Run the stage with params.yaml and ``key=value`` overrides."""
-    params = load_params(argv)
-    config = SyntheticConfig.from_params(params.get("synthetic"))
-    build_dataset((REPO_ROOT / params["data"]["root"]).resolve(), config, int(params["seed"]))
+    run_main("make_dataset", run, PARAMS, argv)
 
 
 if __name__ == "__main__":

@@ -9,26 +9,20 @@ Writes ``artifacts/train_vae/`` (model.pt, metrics.json, loss.csv/png).
 
 from __future__ import annotations
 
-import sys
-from collections.abc import Sequence
-from pathlib import Path
 from typing import Any
 
-import numpy as np
 import torch
 
 from data.motion_dataset import MotionTextDataset, collate_trimmed
 from models.vae import MotionVAE, MotionVAEConfig, vae_loss
-from pipelines.checkpoint import load_final_model
-from pipelines.config import REPO_ROOT, load_params
-from pipelines.runner import Components, StepContext, TrainSpec, run_training
-
-RUNNER_KEYS = ("seed", "batch_size", "max_steps", "grad_clip", "log_every", "lr_schedule", "warmup_steps",
-               "min_lr_ratio", "length_buckets")
+from pipelines.cli import repo_path
+from pipelines.feature_store import FeatureStore
+from pipelines.runner import Components, StepContext, TrainSpec
+from pipelines.stage import TrainingStage, main
 
 
 def dataset(config: dict) -> MotionTextDataset:
-    return MotionTextDataset(config["features_dir"], "train", config["mean"], config["std"], config["max_frames"])
+    return MotionTextDataset(config["features_dir"], "train", config["mean"], config["std"], config["crop_frames"])
 
 
 def build(config: dict) -> Components:
@@ -48,45 +42,23 @@ def step(batch: dict, ctx: StepContext) -> dict[str, torch.Tensor]:
             "joint": losses["joint"].detach(), "kl": losses["kl"].detach()}
 
 
-SPEC = TrainSpec(build=build, dataset=dataset, step=step, collate=collate_trimmed)
-
-
-def loop_config(params: dict[str, Any]) -> dict[str, Any]:
-    """The runner's loop config from params (absolute paths, dataset statistics included)."""
+def stage_config(params: dict[str, Any]) -> dict[str, Any]:
+    """The stage's loop-config keys: absolute paths, the dataset statistics and the model sizes."""
     cfg = params["train_vae"]
-    features = (REPO_ROOT / params["features"]["out"]).resolve()
-    mean, std = np.load(features / "mean.npy"), np.load(features / "std.npy")
-    joints_num = (mean.shape[0] + 1) // 12
-    model = {**cfg["model"], "feature_dim": int(mean.shape[0])}
-    return {key: cfg[key] for key in RUNNER_KEYS} | {
-        "features_dir": str(features), "mean": mean.tolist(), "std": std.tolist(), "joints_num": joints_num,
-        "max_frames": cfg["max_frames"], "model": model, "lr": cfg["lr"], "weight_decay": cfg["weight_decay"],
-        "kl_weight": cfg["kl_weight"], "joint_weight": cfg["joint_weight"], "joint_space": cfg["joint_space"],
+    store = FeatureStore(repo_path(params, "features.out"))
+    return {
+        "features_dir": str(store.path), "mean": store.mean.tolist(), "std": store.std.tolist(),
+        "joints_num": store.joints_num, "crop_frames": cfg["crop_frames"],
+        "model": {**cfg["model"], "feature_dim": store.feature_dim}, "lr": cfg["lr"],
+        "weight_decay": cfg["weight_decay"], "kl_weight": cfg["kl_weight"], "joint_weight": cfg["joint_weight"],
+        "joint_space": cfg["joint_space"],
     }
 
 
-def load_vae(out_dir: Path) -> MotionVAE:
-    """The trained VAE of a ``train_vae`` output folder, in eval mode."""
-    payload = load_final_model(out_dir)
-    vae = MotionVAE(MotionVAEConfig(**payload["config"]["model"]))
-    vae.load_state_dict(payload["models"]["vae"])
-    return vae.eval()
-
-
-def run(params: dict[str, Any]) -> Path:
-    out = REPO_ROOT / params["paths"]["artifacts"] / "train_vae"
-    storage = str((REPO_ROOT / params["paths"]["ray_storage"]).resolve())
-    result = run_training("train_vae", SPEC, loop_config(params), params["ray"], out, storage)
-    print(f"train_vae: final loss {result.metrics.get('loss', float('nan')):.4f} -> {result.out_dir}")
-    return result.out_dir
-
-
-def main(argv: Sequence[str] | None = None) -> None:
-    try:
-        run(load_params(argv))
-    except (ValueError, FileNotFoundError) as err:
-        sys.exit(f"train_vae: {err}")
-
+STAGE = TrainingStage(
+    name="train_vae", module=__name__, spec=TrainSpec(build=build, dataset=dataset, step=step, collate=collate_trimmed),
+    config=stage_config, inputs=("features_dir",), params=("train_vae", "features.out", "paths", "ray"),
+)
 
 if __name__ == "__main__":
-    main()
+    main(STAGE)

@@ -1,0 +1,92 @@
+"""The feature store as one object: ``extract_features``'s folder, read by every later stage.
+
+Layout (written by ``stages/extract_features.py``): ``<split>.parquet`` per split
+(:mod:`data.store`), ``mean.npy`` / ``std.npy`` (D,) float32 feature statistics and ``meta.json``
+(``text_encoder``: name, path, max_length, dim, token_dim; and the extraction settings).
+
+:class:`FeatureStore` owns them: it checks the statistics once, encodes prompts with the same
+frozen text encoder the captions were encoded with, and turns normalised generator output back
+into joints.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Sequence
+from functools import cached_property
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from data.features import recover_from_ric
+from data.store import StoredItem, read_split
+from data.text_encoders import TextEncoder, build_text_encoder
+from models.generator import TextBatch
+
+
+class FeatureStore:
+    """A feature-store folder: statistics, metadata, splits and its text encoder."""
+
+    def __init__(self, path: str | Path) -> None:
+        self.path = Path(path).resolve()
+        if not self.path.is_dir():
+            raise FileNotFoundError(f"{self.path}: no feature store (run `dvc repro extract_features`)")
+        self.mean = self._load_stat("mean.npy")
+        self.std = self._load_stat("std.npy")
+        if self.mean.shape != self.std.shape:
+            raise ValueError(f"{self.path}: mean.npy {self.mean.shape} and std.npy {self.std.shape} differ in shape")
+        meta_path = self.path / "meta.json"
+        try:
+            self.meta: dict[str, Any] = json.loads(meta_path.read_text(encoding="utf-8"))
+        except (OSError, json.JSONDecodeError) as err:
+            raise ValueError(f"{meta_path}: cannot read the store's metadata ({err})") from err
+        if "text_encoder" not in self.meta:
+            raise ValueError(f"{meta_path}: no 'text_encoder' entry")
+
+    def _load_stat(self, name: str) -> np.ndarray:
+        path = self.path / name
+        try:
+            values = np.load(path, allow_pickle=False)
+        except (OSError, ValueError) as err:
+            raise ValueError(f"{path}: cannot read ({err})") from err
+        if values.ndim != 1 or not np.all(np.isfinite(values)):
+            raise ValueError(f"{path}: expected a finite 1-D array, got shape {values.shape}")
+        return values.astype(np.float32)
+
+    @property
+    def feature_dim(self) -> int:
+        return int(self.mean.shape[0])
+
+    @property
+    def joints_num(self) -> int:
+        """Joints of the skeleton the features describe (D = 12 J - 1)."""
+        return (self.feature_dim + 1) // 12
+
+    @property
+    def text_encoder_meta(self) -> dict[str, Any]:
+        """``name``, ``path``, ``max_length``, ``dim`` (pooled) and ``token_dim`` of the caption encoder."""
+        return self.meta["text_encoder"]
+
+    def split(self, name: str) -> list[StoredItem]:
+        """The items of split ``name`` (``train``, ``val`` or ``test``)."""
+        path = self.path / f"{name}.parquet"
+        if not path.is_file():
+            raise FileNotFoundError(f"{path}: no such split in the feature store")
+        return read_split(path)
+
+    @cached_property
+    def text_encoder(self) -> TextEncoder:
+        """The frozen encoder the captions were encoded with, loaded once (None path: the packaged one)."""
+        meta = self.text_encoder_meta
+        return build_text_encoder(meta["name"], path=meta["path"], max_length=meta["max_length"])
+
+    def encode_prompts(self, texts: Sequence[str]) -> TextBatch:
+        """Prompts as a :class:`TextBatch` (pooled and real-token embeddings)."""
+        enc = self.text_encoder.encode(list(texts))
+        return TextBatch(list(texts), enc.pooled, [enc.tokens[k][enc.mask[k]] for k in range(len(texts))])
+
+    def to_joints(self, features: np.ndarray, lengths: Sequence[int]) -> list[np.ndarray]:
+        """Normalised (B, T, D) generator output -> B global joint arrays (L_b, J, 3) in metres."""
+        return [recover_from_ric(features[b, :n] * self.std + self.mean, self.joints_num)
+                for b, n in enumerate(lengths)]

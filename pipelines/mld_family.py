@@ -1,0 +1,119 @@
+"""The MLD family's loaders, generators and registry functions (the motion VAE and the MLD teacher).
+
+- :func:`load_vae` / :func:`load_mld`: trained models from ``train_vae`` / ``train_mld`` outputs.
+- :class:`MLDGenerator`: DDIM over the VAE latent with classifier-free guidance, then decoding.
+- :class:`VAEReconstruction`: the VAE's encode (posterior mean) -> decode of real motions.
+- :func:`vae_rows`, :func:`mld_rows`, :func:`mld_generator`: the registry's entries
+  (``pipelines/registry.py``).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+import torch
+
+from data.motion_dataset import pad_tokens
+from models.diffusion import NoiseSchedule
+from models.generator import Generator, Reconstructor, TextBatch
+from models.mld import MLDConfig, MLDDenoiser, sample_mld
+from models.vae import MotionVAE, MotionVAEConfig, length_sorted_chunks
+from pipelines.checkpoint import load_final_model
+
+#: DDIM step counts of the MLD rows: 50 (MLD's sampler) and the few-step baselines of MotionLCM's Table 4.
+MLD_ROW_STEPS = (50, 1, 2, 4)
+DEFAULT_STEPS = 50
+
+if TYPE_CHECKING:  # annotations only: the registry imports this module, not the reverse
+    from pipelines.registry import EvalContext, GenerateOptions
+
+
+def noise_schedule(config: dict[str, Any]) -> NoiseSchedule:
+    """The teacher's noise schedule from its loop config."""
+    return NoiseSchedule.from_name(config["beta_schedule"], config["num_train_timesteps"],
+                                   beta_start=config["beta_start"], beta_end=config["beta_end"])
+
+
+def load_vae(out_dir: Path) -> MotionVAE:
+    """The trained VAE of a ``train_vae`` output folder, in eval mode."""
+    payload = load_final_model(out_dir)
+    vae = MotionVAE(MotionVAEConfig(**payload["config"]["model"]))
+    vae.load_state_dict(payload["models"]["vae"])
+    return vae.eval()
+
+
+def load_mld(out_dir: Path, use_ema: bool = True) -> tuple[MLDDenoiser, NoiseSchedule, dict[str, Any]]:
+    """The trained denoiser (EMA weights when present), its noise schedule and its loop config."""
+    payload = load_final_model(out_dir)
+    config = payload["config"]
+    denoiser = MLDDenoiser(MLDConfig(**config["model"]))
+    weights = payload["ema"].get("denoiser") if use_ema else None
+    denoiser.load_state_dict(weights or payload["models"]["denoiser"])
+    return denoiser.eval(), noise_schedule(config), config
+
+
+class MLDGenerator:
+    """MLD: DDIM over the VAE latent with classifier-free guidance, then VAE decoding."""
+
+    stochastic = True
+
+    def __init__(self, name: str, denoiser: MLDDenoiser, vae: MotionVAE, schedule: NoiseSchedule,
+                 num_steps: int, guidance: float) -> None:
+        self.name, self.denoiser, self.vae, self.schedule = name, denoiser, vae, schedule
+        self.num_steps, self.guidance = num_steps, guidance
+        self.nfe = num_steps * (2 if guidance != 1.0 else 1)
+
+    @torch.inference_mode()
+    def sample(self, text: TextBatch, lengths: np.ndarray, seed: int) -> np.ndarray:
+        generator = torch.Generator().manual_seed(seed)
+        words = {}
+        if self.denoiser.config.word_tokens != "none":
+            tokens, mask = pad_tokens([np.asarray(t, np.float32) for t in text.tokens])
+            words = {"text_tokens": tokens, "text_mask": mask}
+        out = sample_mld(self.denoiser, self.vae, self.schedule, torch.from_numpy(text.pooled.astype(np.float32)),
+                         torch.as_tensor(lengths), self.num_steps, self.guidance, generator, **words)
+        return out.numpy()
+
+
+class VAEReconstruction:
+    """The motion VAE's encode (posterior mean) -> decode of real motions."""
+
+    name = "VAE"
+
+    def __init__(self, vae: MotionVAE) -> None:
+        self.vae = vae.eval()
+
+    @torch.inference_mode()
+    def reconstruct(self, motions: np.ndarray, lengths: np.ndarray, chunk_size: int = 64) -> np.ndarray:
+        """Normalised motions (B, T, D) -> reconstructions (B, T, D), in chunks of similar length."""
+        x, lengths_t = torch.from_numpy(motions.astype(np.float32)), torch.as_tensor(lengths)
+        out = torch.zeros_like(x)
+        for idx, longest in length_sorted_chunks(lengths_t, chunk_size):
+            z, _ = self.vae.encode(x[idx, :longest], lengths_t[idx], sample=False)
+            out[idx, :longest] = self.vae.decode(z, lengths_t[idx], longest)
+        return out.numpy()
+
+
+def vae_rows(ctx: EvalContext) -> list[Reconstructor]:
+    """The motion VAE's reconstruction of the test motions."""
+    return [VAEReconstruction(load_vae(ctx.trained("train_vae")))]
+
+
+def _mld(ctx: EvalContext, steps: int, guidance: float) -> MLDGenerator:
+    denoiser, schedule, _ = load_mld(ctx.trained("train_mld"))
+    return MLDGenerator(f"MLD-DDIM{steps}", denoiser, load_vae(ctx.trained("train_vae")), schedule, steps, guidance)
+
+
+def mld_rows(ctx: EvalContext) -> list[Generator]:
+    """MLD with DDIM 50 (its published sampler) and the few-step DDIM 1/2/4 baselines (one load)."""
+    first = _mld(ctx, MLD_ROW_STEPS[0], ctx.params["train_mld"]["guidance"])
+    return [first] + [MLDGenerator(f"MLD-DDIM{n}", first.denoiser, first.vae, first.schedule, n, first.guidance)
+                      for n in MLD_ROW_STEPS[1:]]
+
+
+def mld_generator(ctx: EvalContext, options: GenerateOptions) -> Generator:
+    """``stages.generate --model mld``: DDIM-50 and the trained guidance unless told otherwise."""
+    guidance = ctx.params["train_mld"]["guidance"] if options.guidance is None else options.guidance
+    return _mld(ctx, options.steps or DEFAULT_STEPS, guidance)

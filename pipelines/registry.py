@@ -1,0 +1,104 @@
+"""The model registry: one entry per model family, read by ``evaluate``, ``generate`` and the report.
+
+An entry names the family's module and, in it, the functions that build its evaluation rows
+(``rows(ctx) -> [Generator | Reconstructor]``) and, for ``stages.generate --model <name>``, its
+generator (``generator(ctx, options) -> Generator``). Modules are imported by name when used, so
+``stages/evaluate.py`` imports no model code itself: the DVC stage ``eval_<name>`` depends on the
+code of its own family only, and retraining one family re-evaluates only that family.
+
+Adding a family: a model module in ``models/``, a training stage, a module in ``pipelines/`` with
+its loaders and ``rows``/``generator`` functions, an entry here, and its ``eval_<name>`` stage in
+``dvc.yaml`` (``tests/test_dvc_deps.py`` tells you its exact deps and params).
+"""
+
+from __future__ import annotations
+
+import importlib
+from collections.abc import Callable
+from dataclasses import dataclass
+from functools import cached_property
+from pathlib import Path
+from typing import Any
+
+from models.generator import Generator, Reconstructor
+from pipelines.feature_store import FeatureStore
+
+
+@dataclass
+class EvalContext:
+    """What a family's functions may use: the params its stage may read, artefacts and the feature store."""
+
+    params: dict[str, Any]
+    artifacts: Path
+    features: Path
+
+    @cached_property
+    def store(self) -> FeatureStore:
+        return FeatureStore(self.features)
+
+    def trained(self, stage: str) -> Path:
+        """A training stage's output folder; FileNotFoundError naming the command when it is missing."""
+        out = self.artifacts / stage
+        if not (out / "model.pt").is_file():
+            raise FileNotFoundError(f"{out}/model.pt is missing: run `dvc repro {stage}` first")
+        return out
+
+
+@dataclass(frozen=True)
+class GenerateOptions:
+    """``stages.generate`` options a family may honour (None: the family's default)."""
+
+    steps: int | None = None
+    guidance: float | None = None
+
+
+@dataclass(frozen=True)
+class ModelFamily:
+    """One registry entry.
+
+    Attributes:
+        name: ``stages.generate --model`` name, DVC stage ``eval_<name>``, folder ``artifacts/eval/<name>``.
+        module: the module holding the functions below.
+        rows: function name in ``module``: ``(EvalContext) -> list of Generator / Reconstructor``.
+        train_stages: training stages whose outputs the rows load (the eval stage's data deps).
+        params: params keys the rows read (beyond ``stages/evaluate.py``'s own).
+        generator: function name in ``module``: ``(EvalContext, GenerateOptions) -> Generator``, or None.
+        description: one line for ``--help`` and the README.
+    """
+
+    name: str
+    module: str
+    rows: str
+    train_stages: tuple[str, ...] = ()
+    params: tuple[str, ...] = ()
+    generator: str | None = None
+    description: str = ""
+
+    def _function(self, attr: str) -> Callable[..., Any]:
+        return getattr(importlib.import_module(self.module), attr)
+
+    def build_rows(self, ctx: EvalContext) -> list[Generator | Reconstructor]:
+        return self._function(self.rows)(ctx)
+
+    def build_generator(self, ctx: EvalContext, options: GenerateOptions) -> Generator:
+        if self.generator is None:
+            raise ValueError(f"model family {self.name!r} has no generator (it is evaluated only)")
+        return self._function(self.generator)(ctx, options)
+
+
+FAMILIES: dict[str, ModelFamily] = {family.name: family for family in (
+    ModelFamily("baselines", "pipelines.baselines", "rows",
+                description="Random and Retrieval: real training motions, no model"),
+    ModelFamily("vae", "pipelines.mld_family", "vae_rows", train_stages=("train_vae",),
+                description="MLD's motion VAE: reconstruction of the test motions"),
+    ModelFamily("mld", "pipelines.mld_family", "mld_rows", train_stages=("train_vae", "train_mld"),
+                params=("train_mld.guidance",), generator="mld_generator",
+                description="MLD: latent diffusion, DDIM with classifier-free guidance"),
+)}
+
+
+def family(name: str) -> ModelFamily:
+    """The registry entry ``name``; ValueError listing the known ones otherwise."""
+    if name not in FAMILIES:
+        raise ValueError(f"unknown model family {name!r}; known: {', '.join(FAMILIES)}")
+    return FAMILIES[name]

@@ -1,0 +1,71 @@
+"""The evaluation report: every stage's rows merged into one table, as markdown and as a plot."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+from matplotlib.figure import Figure
+
+REAL = "Real"
+
+COLUMNS = [  # (metrics.json key, report header, decimals)
+    ("R_precision_top1", "R@1 ↑", 3), ("R_precision_top2", "R@2 ↑", 3), ("R_precision_top3", "R@3 ↑", 3),
+    ("FID", "FID ↓", 3), ("MM_Dist", "MM-Dist ↓", 3), ("Diversity", "Diversity →", 3),
+    ("MultiModality", "MModality ↑", 3), ("NFE", "NFE", 0), ("AITS_s", "AITS (s) ↓", 4),
+    ("ms_per_frame", "ms/frame ↓", 3),
+    ("MPJPE_mm", "MPJPE (mm) ↓", 1), ("skating_ratio", "Skate ↓", 3), ("penetration_mm", "Penetrate (mm) ↓", 2),
+    ("floating_mm", "Float (mm) ↓", 2),
+]
+
+
+def merge_tables(tables: list[dict[str, dict[str, float]]]) -> dict[str, dict[str, float]]:
+    """One table from the stages' tables, in order; a row name in two tables is an error."""
+    merged: dict[str, dict[str, float]] = {}
+    for table in tables:
+        clash = sorted(set(merged) & set(table))
+        if clash:
+            raise ValueError(f"row(s) {clash} come from two evaluation stages")
+        merged |= table
+    return merged
+
+
+def _cell(row: dict[str, float], key: str, decimals: int) -> str:
+    if key not in row:
+        return "–"
+    text = f"{row[key]:.{decimals}f}"
+    return f"{text} ± {row[key + '_ci']:.{decimals}f}" if f"{key}_ci" in row else text
+
+
+def report_markdown(table: dict[str, dict[str, float]], meta: dict[str, Any]) -> str:
+    """The paper-style table (mean ± 95% CI over replications)."""
+    lines = [
+        f"# Evaluation on {meta['dataset']} ({meta['test_items']} test items, {meta['replications']} replications)",
+        "",
+        "| Method | " + " | ".join(h for _, h, _ in COLUMNS) + " |",
+        "|---" * (len(COLUMNS) + 1) + "|",
+    ]
+    lines += ["| " + name + " | " + " | ".join(_cell(row, k, d) for k, _, d in COLUMNS) + " |"
+              for name, row in table.items()]
+    lines += ["", "→: closer to Real is better. ± is 1.96·std/√R over replications. "
+              "AITS: seconds per sentence, batch 1, warm, loading excluded."]
+    return "\n".join(lines) + "\n"
+
+
+def plot_fid_vs_time(table: dict[str, dict[str, float]], path: Path) -> None:
+    """FID against AITS for every timed row; the Real row's FID as a dashed line."""
+    fig = Figure(figsize=(6, 4))
+    ax = fig.subplots()
+    for name, row in table.items():
+        if "AITS_s" in row:
+            ax.scatter(row["AITS_s"], row["FID"], s=40)
+            ax.annotate(name, (row["AITS_s"], row["FID"]), textcoords="offset points", xytext=(5, 5))
+    if REAL in table:
+        ax.axhline(table[REAL]["FID"], linestyle="--", color="grey", label="Real")
+        ax.legend()
+    ax.set_xscale("log")
+    ax.set_xlabel("AITS (s per sentence, log)")
+    ax.set_ylabel("FID")
+    ax.set_title("FID vs inference time")
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)

@@ -1,0 +1,105 @@
+"""The skeleton every training stage shares: params -> loop config -> the runner -> outputs.
+
+A training stage module is its :class:`~pipelines.runner.TrainSpec` plus the mapping from params
+to the stage's own part of the loop config, declared as a :class:`TrainingStage`::
+
+    STAGE = TrainingStage(name="train_vae", module=__name__, spec=SPEC, config=stage_config,
+                          inputs=("features_dir",))
+
+    if __name__ == "__main__":
+        main(STAGE)
+
+This module supplies the rest, the same for every stage:
+
+- the runner keys come from the stage's ``loop`` params group (``train_vae.loop``), validated by
+  :meth:`LoopSettings.parse`: an unknown or missing key is an error, never a silent default;
+- the output folder is ``<paths.artifacts>/<name>``; Ray storage is ``ray.storage`` when set (a
+  shared path or URI on a cluster), else ``paths.ray_storage``;
+- the run's fingerprint (:func:`pipelines.identity.fingerprint`) covers the code the stage module
+  imports and the contents of the input folders named by ``inputs`` (loop-config keys), so changed
+  code or inputs train from step 0 and an interrupted identical run resumes;
+- the stage sees only the params keys it declares (``params``), the list its DVC stage declares
+  (``tests/test_dvc_deps.py``): reading any other key is an error, so the two cannot drift;
+- :func:`main` turns user errors (bad params, missing files) into one line and exit status 1.
+"""
+
+from __future__ import annotations
+
+import sys
+from collections.abc import Callable, Sequence
+from dataclasses import asdict, dataclass
+from typing import Any
+
+from pipelines.cli import artifacts_dir, param, run_main
+from pipelines.config import REPO_ROOT
+from pipelines.identity import fingerprint
+from pipelines.runner import LoopSettings, RunResult, TrainSpec, resolve_storage, run_training
+
+
+@dataclass(frozen=True)
+class TrainingStage:
+    """One training run of a stage.
+
+    Attributes:
+        name: run name prefix and output folder ``<paths.artifacts>/<name>``; usually the DVC stage.
+        module: the stage's module (``__name__``); the code it imports is part of the run's identity.
+        spec: what to train (build, dataset, step).
+        config: ``params -> the stage's own loop-config keys`` (paths absolute, sizes resolved).
+        params: the params keys (dotted) the stage reads; its DVC ``params`` list, and all it is given.
+        inputs: loop-config keys holding input folders whose contents are part of the run's identity.
+        loop_group: dotted params key of the runner settings (default ``<name>.loop``).
+    """
+
+    name: str
+    module: str
+    spec: TrainSpec
+    config: Callable[[dict[str, Any]], dict[str, Any]]
+    params: tuple[str, ...]
+    inputs: tuple[str, ...] = ()
+    loop_group: str = ""
+
+    @property
+    def loop_key(self) -> str:
+        return self.loop_group or f"{self.name}.loop"
+
+
+def ray_storage(params: dict[str, Any]) -> str:
+    """Ray storage for runs and sweeps: ``ray.storage`` if set (path or URI), else ``paths.ray_storage``."""
+    storage = param(params, "ray").get("storage")
+    return resolve_storage(storage or REPO_ROOT / param(params, "paths.ray_storage"))
+
+
+def module_name(name: str) -> str:
+    """``name``, or the real name of the module run as ``python -m <module>`` when it is ``__main__``."""
+    if name == "__main__":
+        spec = getattr(sys.modules["__main__"], "__spec__", None)
+        if spec is None:
+            raise ValueError("a training stage runs as `python -m stages.<name>`, not as a script path")
+        return spec.name
+    return name
+
+
+def loop_config(stage: TrainingStage, params: dict[str, Any]) -> dict[str, Any]:
+    """The runner's loop config: the validated ``loop`` group plus the stage's own keys."""
+    settings = LoopSettings.parse(param(params, stage.loop_key), stage.loop_key)
+    own = stage.config(params)
+    clash = sorted(set(own) & set(asdict(settings)))
+    if clash:
+        raise ValueError(f"{stage.name}: its config repeats runner key(s) {clash}; they belong in {stage.loop_key}")
+    return asdict(settings) | own
+
+
+def train(stage: TrainingStage, params: dict[str, Any], config: dict[str, Any] | None = None) -> RunResult:
+    """Run ``stage`` (``config``: a ready loop config, else built from params) and write its outputs."""
+    config = loop_config(stage, params) if config is None else config
+    digest = fingerprint(module_name(stage.module), [config[key] for key in stage.inputs])
+    result = run_training(stage.name, stage.spec, config, param(params, "ray"), artifacts_dir(params) / stage.name,
+                          ray_storage(params), fingerprint=digest)
+    print(f"{stage.name}: final loss {result.metrics.get('loss', float('nan')):.4f} after "
+          f"{result.metrics.get('step', 0)} steps -> {result.out_dir}")
+    return result
+
+
+def main(stage: TrainingStage, argv: Sequence[str] | None = None) -> None:
+    """``python -m stages.<name> [key=value ...]`` for a training stage."""
+    run_main(stage.name, lambda params: train(stage, params), stage.params, argv)

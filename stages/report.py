@@ -1,0 +1,64 @@
+"""Stage ``report``: the evaluation stages' rows merged into the one results table.
+
+``python -m stages.report [key=value ...]`` reads ``artifacts/eval/real/`` and
+``artifacts/eval/<family>/`` for every family of the model registry and writes
+``artifacts/eval/metrics.json`` (``{row: {metric: value}}``, the rows in registry order after
+``Real``), ``report.md`` (the paper-style table, also printed), ``fid_vs_time.png`` and
+``samples/`` (every family's rendered sample animations). Each file is replaced atomically.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+from pathlib import Path
+from typing import Any
+
+from data.atomic import atomic_directory
+from pipelines.cli import artifacts_dir, run_main
+from pipelines.registry import FAMILIES
+from pipelines.report import merge_tables, plot_fid_vs_time, report_markdown
+
+PARAMS = ("paths.artifacts",)
+SOURCES = ("real", *FAMILIES)
+
+
+def _read_json(path: Path) -> Any:
+    try:
+        return json.loads(path.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        stage = f"eval_{path.parent.name}"
+        raise FileNotFoundError(f"{path} is missing: run `dvc repro {stage}` first") from None
+    except json.JSONDecodeError as err:
+        raise ValueError(f"{path}: not valid JSON ({err})") from err
+
+
+def _replace(path: Path, write: Any) -> None:
+    """Write ``path`` through a temporary sibling (same suffix) and rename it into place."""
+    tmp = path.with_name(f".{path.stem}.tmp{path.suffix}")
+    try:
+        write(tmp)
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
+
+
+def run(params: dict[str, Any]) -> dict[str, dict[str, float]]:
+    """Merge, write and print the report; returns the merged table."""
+    eval_dir = artifacts_dir(params) / "eval"
+    table = merge_tables([_read_json(eval_dir / name / "metrics.json") for name in SOURCES])
+    report = report_markdown(table, _read_json(eval_dir / "real" / "meta.json"))
+    _replace(eval_dir / "metrics.json", lambda p: p.write_text(json.dumps(table, indent=2) + "\n"))
+    _replace(eval_dir / "report.md", lambda p: p.write_text(report, encoding="utf-8"))
+    _replace(eval_dir / "fid_vs_time.png", lambda p: plot_fid_vs_time(table, p))
+    with atomic_directory(eval_dir / "samples") as tmp:
+        for name in SOURCES:
+            for gif in sorted((eval_dir / name / "samples").glob("*")):
+                shutil.copy2(gif, tmp / gif.name)
+    print(report)
+    return table
+
+
+if __name__ == "__main__":
+    run_main("report", run, PARAMS)
