@@ -26,6 +26,10 @@ from pathlib import Path
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 PROJECT_PACKAGES = ("data", "models", "pipelines", "stages")
+#: Files a training run writes beside ``model.pt`` to record how it went (wall time, attempts,
+#: curves), not what it produced: left out of an input's digest, so a resumed or re-run identical
+#: upstream stage does not make its downstream stages train again.
+RUN_LOG_FILES = frozenset({"metrics.json", "run.json", "loss.csv", "loss.png"})
 
 
 def _module_path(name: str, root: Path) -> Path | None:
@@ -113,7 +117,8 @@ def _hash_tree(digest: hashlib._Hash, path: Path, label: str) -> None:
     """Feed every file under ``path`` (name and content, sorted) into ``digest``."""
     if not path.exists():
         raise FileNotFoundError(f"{path}: input of the run does not exist")
-    files = [path] if path.is_file() else sorted(p for p in path.rglob("*") if p.is_file())
+    files = [path] if path.is_file() else sorted(
+        p for p in path.rglob("*") if p.is_file() and p.name not in RUN_LOG_FILES)
     for file in files:
         digest.update(f"{label}/{file.relative_to(path) if file != path else ''}\0".encode())
         with file.open("rb") as handle:
@@ -123,7 +128,8 @@ def _hash_tree(digest: hashlib._Hash, path: Path, label: str) -> None:
 
 
 def fingerprint(module: str, inputs: Iterable[str | Path] = (), root: Path = REPO_ROOT) -> str:
-    """Hex digest of the code ``module`` imports (file contents) and of every file under ``inputs``."""
+    """Hex digest of the code ``module`` imports (file contents) and of the files under ``inputs``
+    (all but :data:`RUN_LOG_FILES`)."""
     digest = hashlib.sha256()
     for rel in module_files(module, root):
         digest.update(f"code/{rel.as_posix()}\0".encode())

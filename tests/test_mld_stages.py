@@ -1,4 +1,5 @@
-"""The MLD family end to end on a tiny store: evaluator, VAE and MLD through Ray, then evaluate.
+"""The MLD family end to end on a tiny store: evaluator, VAE and MLD through Ray, then the
+per-family evaluation stages and the report.
 
 Model sizes and step counts are minimal: this checks the stages' wiring, artefacts and the
 generator interface (values, determinism, padding), not model quality.
@@ -12,8 +13,14 @@ import numpy as np
 import pytest
 
 from models.generator import Generator, TextBatch
-from pipelines.generators import MLDGenerator
-from stages import evaluate, generate, train_evaluator, train_mld, train_vae
+from pipelines.checkpoint import load_final_model
+from pipelines.latent_cache import collate_words
+from pipelines.mld_family import MLDGenerator, load_mld, load_vae
+from pipelines.registry import FAMILIES
+from pipelines.stage import loop_config, train
+from stages import evaluate, generate, report, train_evaluator, train_mld, train_vae
+
+pytestmark = pytest.mark.slow
 
 TINY_NET = {"layers": 1, "heads": 2, "ff_dim": 32}
 
@@ -22,51 +29,62 @@ TINY_NET = {"layers": 1, "heads": 2, "ff_dim": 32}
 def trained(small_store, ray_cluster):
     params = copy.deepcopy(small_store)
     params["ray"].update(num_workers=1, checkpoint_every=3, max_failures=0)
-    params["train_evaluator"].update(profile="smoke", movement_steps=4, matching_steps=6, batch_size=16)
-    params["train_vae"].update(max_steps=6, batch_size=8, max_frames=64, log_every=3, warmup_steps=0)
+    params["train_evaluator"]["profile"] = "smoke"
+    params["train_evaluator"]["movement_loop"].update(max_steps=4, batch_size=16)
+    params["train_evaluator"]["loop"].update(max_steps=6, batch_size=16)
+    for stage in ("train_vae", "train_mld"):
+        params[stage]["loop"].update(max_steps=6, batch_size=8, log_every=3, warmup_steps=0)
+        params[stage]["crop_frames"] = 64
     params["train_vae"]["model"].update(latent_dim=16, **TINY_NET)
-    params["train_mld"].update(max_steps=6, batch_size=8, max_frames=64, log_every=3, warmup_steps=0)
     params["train_mld"]["model"].update(time_freq_dim=16, **TINY_NET)
     params["evaluate"].update(replications=1, diversity_times=10, mm_texts=4, mm_repeats=11, timing_sentences=2)
     params["evaluate"]["samples"].update(prompts=["a person walks forward"], length=40)
     in_process = copy.deepcopy(params)
     in_process["ray"]["num_workers"] = 0
     train_evaluator.run(in_process)
-    train_vae.run(params)
-    train_mld.run(params)
+    train(train_vae.STAGE, params)
+    train(train_mld.STAGE, params)
     return params
 
 
 def test_vae_and_mld_write_resumable_models(trained):
-    artifacts = trained["paths"]["artifacts"]
-    for stage in ("train_vae", "train_mld"):
-        metrics = json.loads(open(f"{artifacts}/{stage}/metrics.json").read())
+    """Both ran under Ray Train with checkpoints in storage; run again unchanged they resume at the
+    last checkpoint (train no step) and write the same weights."""
+    artifacts = Path(trained["paths"]["artifacts"])
+    for stage in (train_vae.STAGE, train_mld.STAGE):
+        metrics = json.loads((artifacts / stage.name / "metrics.json").read_text())
         assert metrics["step"] == 6 and np.isfinite(metrics["loss"])
-        run = json.loads(open(f"{artifacts}/{stage}/run.json").read())
-        assert run["run_path"] is not None  # ran under Ray Train, with checkpoints in storage
-    denoiser, schedule, config = train_mld.load_mld(Path(artifacts) / "train_mld")
+        run = json.loads((artifacts / stage.name / "run.json").read_text())
+        assert Path(run["run_path"]).parent == Path(trained["paths"]["ray_storage"]).resolve()
+        assert any(Path(run["run_path"]).glob("checkpoint_*"))
+        before = load_final_model(artifacts / stage.name)["models"]
+        again = train(stage, trained)
+        assert again.run_name == run["run_name"] and again.attempts == [0, 6]
+        after = load_final_model(artifacts / stage.name)["models"]
+        assert all(np.array_equal(before[m][k].numpy(), after[m][k].numpy()) for m in before for k in before[m])
+    denoiser, schedule, config = load_mld(artifacts / "train_mld")
     assert config["model"]["latent_dim"] == 16 and config["model"]["latent_scale"] > 0
     assert schedule.num_steps == 1000
 
 
 def test_vae_dataset_lengths_are_the_served_lengths(trained):
     """``lengths`` (what the VAE's length-bucketed batch order sorts by) match what items serve."""
-    data = train_vae.dataset(train_vae.loop_config(trained))
-    assert trained["train_vae"]["length_buckets"] > 0
+    data = train_vae.dataset(loop_config(train_vae.STAGE, trained))
+    assert trained["train_vae"]["loop"]["length_buckets"] > 0
     served = [int(data[k]["length"]) for k in range(len(data))]
     assert data.lengths.tolist() == served
     assert data.lengths.tolist() == [min(item.length, 64) for item in data.items]
-    assert any(item.length > 64 for item in data.items)  # long items are served cropped to max_frames
+    assert any(item.length > 64 for item in data.items)  # long items are served cropped to crop_frames
 
 
 def test_latent_cache_is_each_items_own_posterior(trained):
     """The cached (mu, logvar) of an item equal encoding it alone, unpadded; captions are the item's own."""
     import torch
 
-    config = train_mld.loop_config(trained)
+    config = loop_config(train_mld.STAGE, trained)
     assert config["model"]["latent_scale"] > 0
     data = train_mld.dataset(config)
-    vae = train_vae.load_vae(Path(config["vae_dir"]))
+    vae = load_vae(Path(config["vae_dir"]))
     for k in (0, len(data) // 2, len(data) - 1):
         x, n = data.motions.window(k)
         dist = vae.encode_distribution(torch.from_numpy(x[None, :n]), [n])
@@ -81,7 +99,7 @@ def test_latent_items_carry_their_captions_word_tokens(trained):
     to its longest caption."""
     import torch
 
-    config = train_mld.loop_config(trained)
+    config = loop_config(train_mld.STAGE, trained)
     assert config["model"]["word_tokens"] != "none" and config["model"]["token_dim"] == 384
     data = train_mld.dataset(config)
     torch.manual_seed(3)
@@ -94,7 +112,7 @@ def test_latent_items_carry_their_captions_word_tokens(trained):
         assert n == len(words) and item["token_mask"][:n].all() and item["tokens"].shape == (32, 384)
         np.testing.assert_array_equal(item["tokens"][:n].numpy(), words.astype(np.float32))
         assert not item["tokens"][n:].any()
-    batch = train_mld.collate_words(items)
+    batch = collate_words(items)
     longest = max(int(item["token_mask"].sum()) for item in items)
     assert batch["tokens"].shape == (8, longest, 384) and batch["token_mask"].shape == (8, longest)
     for k, item in enumerate(items):  # trimming removed padding only
@@ -104,8 +122,8 @@ def test_latent_items_carry_their_captions_word_tokens(trained):
 
 def test_mld_generator_is_seeded_and_zero_padded(trained):
     artifacts = Path(trained["paths"]["artifacts"])
-    denoiser, schedule, _ = train_mld.load_mld(artifacts / "train_mld")
-    gen = MLDGenerator("MLD-DDIM4", denoiser, train_vae.load_vae(artifacts / "train_vae"), schedule, 4, 7.5)
+    denoiser, schedule, _ = load_mld(artifacts / "train_mld")
+    gen = MLDGenerator("MLD-DDIM4", denoiser, load_vae(artifacts / "train_vae"), schedule, 4, 7.5)
     assert isinstance(gen, Generator) and gen.nfe == 8
     rng = np.random.default_rng(0)
     pooled = rng.standard_normal((3, 384)).astype(np.float32)
@@ -122,16 +140,24 @@ def test_mld_generator_is_seeded_and_zero_padded(trained):
     assert not a[1, 24:].any() and not a[2, 32:].any() and np.abs(a[1, :24]).sum() > 0
 
 
-def test_evaluate_reports_every_row(trained):
-    table = evaluate.run(trained)
-    assert {"Real", "Random", "Retrieval", "VAE", "MLD-DDIM50", "MLD-DDIM1", "MLD-DDIM2", "MLD-DDIM4"} <= set(table)
+def test_evaluation_stages_and_report(trained):
+    """Each family's stage writes its rows; the report merges them in registry order after Real."""
+    rows = {name: evaluate.run(name, trained) for name in ("real", *FAMILIES)}
+    assert list(rows["real"]) == ["Real"] and list(rows["baselines"]) == ["Random", "Retrieval"]
+    assert list(rows["vae"]) == ["VAE"] and list(rows["mld"]) == ["MLD-DDIM50", "MLD-DDIM1", "MLD-DDIM2", "MLD-DDIM4"]
+    table = report.run(trained)
+    assert list(table) == [row for name in ("real", *FAMILIES) for row in rows[name]]
     assert table["VAE"]["MPJPE_mm"] > 0 and "MPJPE_mm" not in table["Real"]
-    assert table["MLD-DDIM50"]["NFE"] == 100 and table["MLD-DDIM50"]["AITS_s"] > table["MLD-DDIM1"]["AITS_s"]
-    assert "MultiModality" in table["MLD-DDIM4"]
-    out = trained["paths"]["artifacts"] + "/eval"
-    assert json.loads(open(f"{out}/metrics.json").read()) == table
-    assert "| MLD-DDIM50 |" in open(f"{out}/report.md").read()
-    assert (Path(out) / "samples" / "MLD-DDIM50_0.gif").stat().st_size > 1000
+    assert [table[f"MLD-DDIM{n}"]["NFE"] for n in (50, 1, 2, 4)] == [100, 2, 4, 8]
+    assert "MultiModality" in table["MLD-DDIM4"] and "MultiModality" not in table["Retrieval"]
+    out = Path(trained["paths"]["artifacts"]) / "eval"
+    assert json.loads((out / "metrics.json").read_text()) == table
+    assert "| MLD-DDIM50 |" in (out / "report.md").read_text()
+    assert (out / "samples" / "MLD-DDIM50_0.gif").stat().st_size > 1000
+    # a family evaluated again alone gives the same values: its rows do not depend on the others
+    again = evaluate.run("baselines", trained)
+    assert again["Retrieval"]["R_precision_top3"] == rows["baselines"]["Retrieval"]["R_precision_top3"]
+    assert again["Random"]["Diversity"] == rows["baselines"]["Random"]["Diversity"]
 
 
 def test_generate_command_writes_joints_and_animation(trained, tmp_path):
@@ -141,5 +167,5 @@ def test_generate_command_writes_joints_and_animation(trained, tmp_path):
     gifs = generate.generate(trained, "mld", ["a person runs", "a person waves"], [40, 40], tmp_path / "m.gif",
                              steps=2)
     assert [p.name for p in gifs] == ["m_0.gif", "m_1.gif"] and all(p.stat().st_size > 1000 for p in gifs)
-    with pytest.raises(ValueError, match="unknown model"):
+    with pytest.raises(ValueError, match="unknown model family 'nope'"):
         generate.generate(trained, "nope", ["x"], [40], tmp_path / "x.npy")
