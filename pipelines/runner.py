@@ -675,14 +675,26 @@ def resolve_storage(storage: str | os.PathLike | None) -> str:
 def ensure_ray(address: str | None, runtime_env: dict | None = None) -> bool:
     """Connect to Ray unless already connected; True if this call did it.
 
-    ``address`` (or ``$RAY_ADDRESS``) joins a cluster; neither starts a local one. On a
+    ``address`` (or ``$RAY_ADDRESS``) joins a cluster; with neither, Ray joins the cluster that
+    ``ray start`` left running on this machine, if any, or else starts a local one. On a
     token-authenticated cluster the caller needs ``RAY_AUTH_MODE=token`` in its env.
+
+    A local cluster starts lean, so that its helper processes take less CPU from the training: no
+    dashboard (Ray still runs its minimal API server), no metrics collection, no event-loop
+    statistics. Workers' output still reaches the driver (the progress lines are printed there).
     """
     import ray
+    from ray._private.services import canonicalize_bootstrap_address
 
     if ray.is_initialized():
         return False
-    ray.init(address=address or os.environ.get("RAY_ADDRESS") or None, runtime_env=runtime_env)
+    address = address or os.environ.get("RAY_ADDRESS") or None
+    lean: dict[str, Any] = {}
+    if address in (None, "local") and canonicalize_bootstrap_address(address) is None:  # ray.init will start one
+        # A new dict on every call: ray.init adds its object-spilling settings to the one it gets.
+        lean = {"include_dashboard": False,
+                "_system_config": {"enable_metrics_collection": False, "event_stats": False}}
+    ray.init(address=address, runtime_env=runtime_env, **lean)
     return True
 
 
