@@ -48,7 +48,7 @@ class SyntheticConfig:
 
     Attributes:
         num_motions: motions generated; mirroring adds as many again.
-        min_frames / max_frames: length bounds of every motion in joint frames (feature
+        min_joint_frames / max_joint_frames: length bounds of every motion in joint frames (feature
             extraction yields one frame fewer).
         actions_per_motion: probabilities of 1, 2, 3... actions in a motion.
         mix_prob: probability that a carrier action takes an upper-body action on top.
@@ -64,8 +64,8 @@ class SyntheticConfig:
     """
 
     num_motions: int = 1000
-    min_frames: int = 44
-    max_frames: int = 196
+    min_joint_frames: int = 44
+    max_joint_frames: int = 196
     actions_per_motion: tuple[float, ...] = (0.4, 0.4, 0.2)
     mix_prob: float = 0.3
     span_prob: float = 0.4
@@ -81,8 +81,8 @@ class SyntheticConfig:
     def __post_init__(self) -> None:
         if self.num_motions < 1:
             raise ValueError("synthetic.num_motions must be >= 1")
-        if not 2 <= self.min_frames < self.max_frames:
-            raise ValueError("synthetic: need 2 <= min_frames < max_frames")
+        if not 2 <= self.min_joint_frames < self.max_joint_frames:
+            raise ValueError("synthetic: need 2 <= min_joint_frames < max_joint_frames")
         if set(self.splits) != set(SPLITS) or abs(sum(self.splits.values()) - 1.0) > 1e-6:
             raise ValueError(f"synthetic.splits must give fractions of {SPLITS} summing to 1")
         if not self.actions_per_motion or abs(sum(self.actions_per_motion) - 1.0) > 1e-6:
@@ -197,10 +197,10 @@ def generate_motion(seed: int, index: int, config: SyntheticConfig) -> Synthetic
     tail = int(rng.integers(4, 12))
     segments: list[Segment] = []
     while not segments:
-        segments, pieces = _program(rng, body, state, config, config.max_frames - len(lead_in.plan) - tail)
+        segments, pieces = _program(rng, body, state, config, config.max_joint_frames - len(lead_in.plan) - tail)
     end_state = pieces[-1].end
     length = len(lead_in.plan) + sum(len(p.plan) for p in pieces)
-    tail = max(tail, config.min_frames - length)
+    tail = max(tail, config.min_joint_frames - length)
     lead_out = build_idle(body, end_state, {"duration": tail / FPS})
     all_pieces = [lead_in, *pieces, lead_out]
     n = sum(len(p.plan) for p in all_pieces)

@@ -39,7 +39,7 @@ def test_paper_profile_is_mlds_published_architecture():
         "hidden_dim": None, "layers": 9, "ff_dim": 1024, "time_freq_dim": 768, "word_tokens": "none"}
     assert (mld["guidance"], mld["beta_schedule"], mld["num_train_timesteps"], mld["lr"]) == (
         7.5, "scaled_linear", 1000, 1e-4)
-    assert vae["kl_weight"] == 1e-4 and vae["length_buckets"] == 0
+    assert vae["kl_weight"] == 1e-4 and vae["loop"]["length_buckets"] == 0
     assert (vae["joint_space"], vae["joint_weight"]) == ("global", 1.0)  # MLD's joint loss
 
 

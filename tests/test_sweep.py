@@ -9,6 +9,7 @@ outputs, and the same command then resumes and finishes it.
 
 from __future__ import annotations
 
+import json
 import math
 import os
 import signal
@@ -40,6 +41,7 @@ from pipelines.sweep import (
     SweepFailed,
     SweepInterrupted,
     SweepSettings,
+    apply_trial,
     best_row,
     check_outcome,
     expected_trials,
@@ -122,6 +124,15 @@ def test_space_keys_must_be_stage_params_and_something_must_vary() -> None:
         parse_space("s", {"lrr": "uniform(0.1, 1)"}, stage_params)
     with pytest.raises(SweepConfigError, match="nothing to vary"):
         parse_space("s", {"seed": 1}, stage_params)
+    grouped = {"lr": 1e-3, "loop": {"batch_size": 32, "seed": 0}}
+    space = parse_space("s", {"loop.batch_size": "choice([8, 16])"}, grouped)
+    assert space == {"loop.batch_size": Dimension("choice", ([8, 16],))}
+    with pytest.raises(SweepConfigError, match="'loop.batch' is not a key"):
+        parse_space("s", {"loop.batch": "choice([8, 16])"}, grouped)
+    params = {"s": grouped, "other": {"x": 1}}
+    applied = apply_trial(params, "s", {"loop.batch_size": 8, "lr": 0.1})
+    assert applied == {"s": {"lr": 0.1, "loop": {"batch_size": 8, "seed": 0}}, "other": {"x": 1}}
+    assert params["s"]["loop"]["batch_size"] == 32  # the caller's params are not changed
     with pytest.raises(SweepConfigError, match="expected a mapping"):
         parse_space("s", None, stage_params)
 
@@ -245,6 +256,8 @@ def build_store(root: Path) -> Path:
     write_split(root / "train.parquet", items, features.shape[1], 4, 4)
     np.save(root / "mean.npy", np.load(FIXTURES / "Mean.npy"))
     np.save(root / "std.npy", np.load(FIXTURES / "Std.npy"))
+    text_encoder = {"name": "test", "path": None, "max_length": 8, "dim": 4, "token_dim": 4}
+    (root / "meta.json").write_text(json.dumps({"text_encoder": text_encoder}))
     return root
 
 
@@ -260,20 +273,22 @@ def smoke_params(tmp: Path) -> dict[str, Any]:
     params["features"]["out"] = str(build_store(tmp / "features"))
     params["paths"].update(artifacts=str(tmp / "artifacts"), ray_storage=str(tmp / "ray"))
     params["ray"].update(max_failures=0, checkpoint_every=1000)
-    params[STAGE].update(batch_size=4, movement_steps=4, movement_window=16, matching_steps=8,
-                         log_every=1000)
+    params[STAGE]["movement_window"] = 16
+    params[STAGE]["movement_loop"].update(batch_size=4, max_steps=4, log_every=1000)
+    params[STAGE]["loop"].update(batch_size=4, max_steps=8, log_every=1000)
     params["sweep"]["settings"].update(num_samples=1, grace_period=1, reduction_factor=2, max_t=4, report_every=2,
                                        max_concurrent_trials=1)
-    params["sweep"][STAGE] = {"lr": "grid([-1.0, 0.003, 0.001, 0.3])", "margin": 10.0, "batch_size": None}
+    params["sweep"][STAGE] = {"lr": "grid([-1.0, 0.003, 0.001, 0.3])", "margin": 10.0, "loop.batch_size": None}
     return params
 
 
 def pretrain_movement_in_process(params: dict[str, Any]) -> None:
     """Write the sweep's prerequisite in-process (1-2 s instead of a Ray Train run); the sweep reuses it."""
-    from stages.train_evaluator import MOVEMENT, loop_configs
+    from pipelines.stage import loop_config
+    from stages.train_evaluator import MOVEMENT
 
-    out = Path(params["paths"]["artifacts"]) / "sweeps" / f"{STAGE}-prerequisites" / "train_evaluator_movement"
-    run_training("train_evaluator_movement", MOVEMENT, loop_configs(params)[0], {**params["ray"], "num_workers": 0},
+    out = Path(params["paths"]["artifacts"]) / "sweeps" / f"{STAGE}-prerequisites" / MOVEMENT.name
+    run_training(MOVEMENT.name, MOVEMENT.spec, loop_config(MOVEMENT, params), {**params["ray"], "num_workers": 0},
                  out, params["paths"]["ray_storage"])
 
 

@@ -147,7 +147,7 @@ def test_library_and_labels(motions):
 
 def test_lengths_are_within_bounds(motions):
     lengths = [len(m.joints) for m in motions]
-    assert min(lengths) >= SMOKE.min_frames and max(lengths) <= SMOKE.max_frames
+    assert min(lengths) >= SMOKE.min_joint_frames and max(lengths) <= SMOKE.max_joint_frames
 
 
 # --- captions ----------------------------------------------------------------------------------
@@ -275,6 +275,7 @@ def test_mirror_of_mirror_is_the_original(motions):
 # --- determinism and speed -------------------------------------------------------------------
 
 
+@pytest.mark.slow  # generates the motions three times, once in a process pool
 def test_same_seed_same_motions_regardless_of_workers():
     config = SyntheticConfig(num_motions=12, workers=1)
     one = [(m.clip_id, m.joints.tobytes(), [c.to_line() for c in m.captions]) for m in generate(config, 5)]
@@ -286,6 +287,7 @@ def test_same_seed_same_motions_regardless_of_workers():
     assert other.joints.tobytes() != one[0][1]
 
 
+@pytest.mark.slow  # builds the dataset (with GIF previews) twice
 def test_same_seed_gives_byte_identical_files(tmp_path):
     config = SyntheticConfig(num_motions=10, previews=1, workers=1)
     make_dataset.build_dataset(tmp_path / "a", config, 9)
@@ -295,9 +297,10 @@ def test_same_seed_gives_byte_identical_files(tmp_path):
     assert any(name.endswith(".gif") for name in digest) and "stats.json" in digest
 
 
-# --- the written dataset -----------------------------------------------------------------------
+# --- the written dataset (slow: the fixture builds it, previews included) ------------------------
 
 
+@pytest.mark.slow
 def test_every_split_id_has_a_motion_and_captions(dataset):
     root, _ = dataset
     ids = {name: (root / f"{name}.txt").read_text().split() for name in SPLITS}
@@ -314,12 +317,14 @@ def test_every_split_id_has_a_motion_and_captions(dataset):
     assert set(actions) == set(everything) and set(actions.values()) <= set(LABELS)
 
 
+@pytest.mark.slow
 def test_the_reader_accepts_the_dataset(dataset):
     root, _ = dataset
     items = sum(len(read_split(root, name, HUMANML3D, source="joints").items) for name in SPLITS)
     assert items > 2 * SMOKE.num_motions  # whole clips plus span items
 
 
+@pytest.mark.slow
 def test_previews_and_stats_are_written(dataset, motions):
     root, stats = dataset
     assert (root / "preview" / "contact_sheet.png").stat().st_size > 10_000
