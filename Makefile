@@ -12,7 +12,7 @@ export WANDB_MODE ?= offline
 export DVC_NO_ANALYTICS ?= 1
 export RAY_USAGE_STATS_ENABLED ?= 0
 
-.PHONY: setup repro test lint params bench clean
+.PHONY: setup repro test test-fast lint params bench clean
 
 $(STAMP): pyproject.toml
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
@@ -28,6 +28,10 @@ repro: setup  ## run the whole DVC pipeline on the configured dataset (default: 
 test: setup  ## lint, then the whole test suite
 	$(BIN)/ruff check .
 	$(BIN)/python -m pytest
+
+test-fast: setup  ## lint, then the tests not marked slow (no Ray, training or stage runs; under a minute)
+	$(BIN)/ruff check .
+	$(BIN)/python -m pytest -m "not slow"
 
 lint: setup
 	$(BIN)/ruff check .

@@ -1,9 +1,14 @@
-"""Shared pytest fixtures: test environment variables and ONE Ray cluster per session.
+"""Shared pytest fixtures: test environment variables, ONE Ray cluster per session, one torch thread.
 
 The Ray cluster is a ``ray.cluster_utils.Cluster`` simulating two nodes on this machine
 (head + one worker node), started lazily by the first test that asks for
 ``ray_cluster`` and shut down at the end of the session. Tests that only need
-"some Ray" use it too; 1-worker Train runs land on either node.
+"some Ray" use it too; 1-worker Train runs land on either node. Every test that uses it
+(directly or through another fixture) is marked ``slow``: starting the cluster alone takes
+~10 s here, and such tests run Ray Train or Tune.
+
+``pytest -m "not slow"`` (``make test-fast``) leaves out the ``slow`` tests: Ray runs, training
+runs and end-to-end stage runs (each over ~1 s on the 2-core machine); ``pytest`` runs them all.
 """
 
 from __future__ import annotations
@@ -25,6 +30,28 @@ TEST_ENV = {
     "RAY_AUTH_MODE": "disabled",
 }
 os.environ.update(TEST_ENV)
+
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    """Mark every test that needs the session Ray cluster as ``slow``."""
+    for item in items:
+        if "ray_cluster" in getattr(item, "fixturenames", ()):
+            item.add_marker(pytest.mark.slow)
+
+
+@pytest.fixture(scope="module")
+def one_thread() -> Iterator[None]:
+    """torch on one intra-op thread for a module of tiny networks, restored afterwards.
+
+    Thread start-up dominates tiny ops, and on 2 shared cores 2 threads run ~5x slower.
+    Use it with ``pytestmark = pytest.mark.usefixtures("one_thread")``.
+    """
+    import torch
+
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)
+
 
 #: Logical CPUs per simulated node (the machine has 2 cores; Ray only counts).
 CPUS_PER_NODE = 2

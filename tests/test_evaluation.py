@@ -3,18 +3,32 @@
 Each item's motion is constant over time and carries a random code in its RIC dims; its caption
 is the token ``c<k>``; the stub embeds a caption as its code and a motion as its first frame's
 code. So Real and a perfect Retrieval must reach R-precision 1, Random must sit at chance.
+The code also sets the heights of joints 1-3 (the other joints stand on the floor, y = 0), so
+the physical measures have known values. Timings use a fake clock, never the wall clock.
 """
 
 import numpy as np
 import pytest
 
+from data.motion_dataset import pad_motions
 from data.skeleton import HUMANML3D
 from data.store import StoredItem
 from models.generator import Generator, TextBatch
-from pipelines.evaluation import EvalConfig, aggregate, crop_lengths, draw, evaluate
-from pipelines.generators import RandomMotion, Retrieval, pad_motions
+from pipelines import evaluation
+from pipelines.baselines import RandomMotion, Retrieval
+from pipelines.evaluation import (
+    EvalConfig,
+    aggregate,
+    crop_lengths,
+    draw,
+    evaluate,
+    physical,
+    references,
+    time_generator,
+)
 
 D, E, CODE = HUMANML3D.feature_dim, 8, slice(4, 12)
+CODE_HEIGHTS = [1, 4, 7]  # code entries that are RIC y of joints 1, 2, 3 (dims 5, 8, 11)
 
 
 def _items(codes: np.ndarray, rng: np.random.Generator, prefix: str) -> list[StoredItem]:
@@ -53,12 +67,32 @@ def world():
 CFG = EvalConfig(replications=3, diversity_times=50, mm_texts=10, mm_repeats=12, mm_times=10, timing_sentences=3)
 
 
-def test_real_and_perfect_retrieval_reach_one_random_sits_at_chance(world):
+class FakeClock:
+    """Stands in for the ``time`` module in pipelines.evaluation: ``perf_counter`` reads ``now``,
+    which moves only by ``tick`` per read and by what a :class:`TimedGenerator` spends."""
+
+    def __init__(self, tick: float = 0.0) -> None:
+        self.now, self.tick = 0.0, tick
+
+    def perf_counter(self) -> float:
+        self.now += self.tick
+        return self.now
+
+
+def expected_penetration_mm(codes: np.ndarray) -> float:
+    """Mean depth (mm) of each item's lowest joint below the floor, beyond the 5 mm tolerance."""
+    depth = np.maximum(0.0, -codes[:, CODE_HEIGHTS].min(axis=1))
+    return 1000.0 * float(np.where(depth > 0.005, depth, 0.0).mean())
+
+
+def test_real_and_perfect_retrieval_reach_one_random_sits_at_chance(world, monkeypatch):
     codes, test, train = world
+    monkeypatch.setattr(evaluation, "time", FakeClock(tick=0.25))  # every timed sample() "takes" 0.25 s
     mean, std = np.zeros(D, np.float32), np.ones(D, np.float32)
     gens = [RandomMotion(train, mean, std), Retrieval(train, mean, std)]
     assert all(isinstance(g, Generator) for g in gens)
-    table = evaluate(gens, test, mean, std, StubEmbedder(codes), HUMANML3D, CFG)
+    embedder = StubEmbedder(codes)
+    table = evaluate(references(test, embedder, CFG), test, mean, std, embedder, HUMANML3D, CFG, gens, real=True)
     assert table["Real"]["R_precision_top1"] == 1.0 and table["Real"]["MM_Dist"] == pytest.approx(0.0, abs=1e-5)
     assert table["Retrieval"]["R_precision_top3"] == 1.0
     assert table["Retrieval"]["FID"] == pytest.approx(table["Real"]["FID"], abs=1e-6)
@@ -67,9 +101,65 @@ def test_real_and_perfect_retrieval_reach_one_random_sits_at_chance(world):
     assert table["Random"]["MultiModality"] > 1.0  # random motions differ
     # metrics that do not apply are absent, never faked
     assert "MultiModality" not in table["Real"] and "MultiModality" not in table["Retrieval"]
-    assert "AITS_s" not in table["Real"] and table["Retrieval"]["AITS_s"] > 0
+    assert "AITS_s" not in table["Real"]
+    assert table["Retrieval"]["AITS_s"] == table["Random"]["AITS_s"] == 0.25
+    assert table["Retrieval"]["NFE"] == table["Random"]["NFE"] == 0
     assert table["Real"]["R_precision_top1_ci"] == 0.0
-    assert table["Real"]["penetration_mm"] >= 0.0
+    # every replication draws all 96 items, so the physical measures are the items' mean, with CI 0
+    assert expected_penetration_mm(codes) > 100.0  # the codes do put most bodies below the floor
+    for row in ("Real", "Retrieval"):  # Retrieval answers with each item's identical training twin
+        assert table[row]["penetration_mm"] == pytest.approx(expected_penetration_mm(codes), rel=1e-5)
+        assert table[row]["penetration_mm_ci"] == pytest.approx(0.0, abs=1e-6)
+        assert table[row]["floating_mm"] == 0.0  # the lowest joint is never above the floor
+        assert table[row]["skating_ratio"] == 0.0  # nothing moves
+
+
+def test_physical_measures_the_joints_recovered_from_valid_frames():
+    """Known depths and heights through recover_from_ric; frames past each length are ignored."""
+    raw = np.zeros((2, 12, D), np.float32)
+    raw[:, :, 3] = 0.9  # root height
+    raw[0, :5, 5] = -0.02  # motion A, frames 0-4 of 10: joint 1 is 2 cm below the floor (RIC y)
+    raw[1, :, 3] = 0.1  # motion B, 8 frames: the whole body 10 cm above the floor...
+    raw[1, :, 5:66:3] = 0.1  # ...every RIC y too
+    raw[0, 10:, 3:66] = -1.0  # padding: 1 m below the floor, must not count
+    raw[1, 8:, 3:66] = -1.0
+    out = physical(raw, np.array([10, 8]), HUMANML3D)
+    assert out["penetration_mm"] == pytest.approx((20.0 * 5 / 10 + 0.0) / 2, rel=1e-5)  # mean over motions
+    assert out["floating_mm"] == pytest.approx((0.0 + 100.0) / 2, rel=1e-5)
+    assert out["skating_ratio"] == 0.0
+
+
+class TimedGenerator:
+    """Each ``sample`` call is recorded and takes a known time on ``clock``: 100 s for the first
+    (the warm-up, which must not be timed), then 0.5 s + 10 ms per frame."""
+
+    name, nfe, stochastic = "Timed", 0, False
+
+    def __init__(self, clock: FakeClock) -> None:
+        self.clock, self.calls = clock, []
+
+    def sample(self, text: TextBatch, lengths: np.ndarray, seed: int) -> np.ndarray:
+        self.clock.now += 0.5 + 0.01 * int(lengths.sum()) if self.calls else 100.0
+        self.calls.append((list(text.texts), lengths.tolist(), seed))
+        return np.zeros((len(lengths), int(lengths.max()), D), np.float32)
+
+
+def test_aits_times_each_caption_alone_after_an_untimed_warm_up(world, monkeypatch):
+    _, test, _ = world
+    clock = FakeClock()
+    monkeypatch.setattr(evaluation, "time", clock)
+    d = draw(test, np.random.default_rng(4), 4)
+    gen = TimedGenerator(clock)
+    out = time_generator(gen, d, 5)
+    warm_up, *timed = gen.calls
+    assert warm_up == ([d.text.texts[0]], [int(d.lengths[0])], 0)
+    assert timed == [([d.text.texts[k]], [int(d.lengths[k])], k) for k in range(5)]  # batch 1, seed k
+    frames = d.lengths[:5].astype(np.float64)
+    assert out["AITS_s"] == pytest.approx(float(np.mean(0.5 + 0.01 * frames)))
+    assert out["ms_per_frame"] == pytest.approx(1000.0 * float(np.sum(0.5 + 0.01 * frames) / np.sum(frames)))
+    capped = TimedGenerator(clock)
+    time_generator(capped, d, 1000)
+    assert len(capped.calls) == 1 + len(d.lengths)  # at most one timed call per caption of the draw
 
 
 def test_crop_lengths_follow_the_reference_rounding():
@@ -124,9 +214,9 @@ def test_pad_motions_zero_fills():
 
 
 def test_too_few_test_items_is_a_clear_error(world):
-    codes, test, train = world
+    codes, test, _ = world
     with pytest.raises(ValueError, match="fewer than one R-precision group"):
-        evaluate([], test[:10], np.zeros(D), np.ones(D), StubEmbedder(codes), HUMANML3D, CFG)
+        references(test[:10], StubEmbedder(codes), CFG)
 
 
 def test_mpjpe_is_root_aligned_and_in_millimetres():

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import math
-from collections.abc import Iterator
 
 import numpy as np
 import pytest
@@ -27,13 +26,7 @@ D = 16  # 12 motion dims + 4 contacts
 SMALL = dict(word_dim=16, text_hidden=16, movement_hidden=16, movement_dim=16, motion_hidden=16, output_dim=8)
 
 
-@pytest.fixture(autouse=True)
-def one_thread() -> Iterator[None]:
-    """These networks are tiny: intra-op threads only add overhead (x5 on a busy 2-core machine)."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
+pytestmark = pytest.mark.usefixtures("one_thread")  # tiny networks (tests/conftest.py)
 
 
 def make_evaluator(vocab_size: int = 20, **overrides: object) -> T2MEvaluator:
@@ -299,6 +292,7 @@ def test_standalone_modules_reject_bad_lengths() -> None:
         motion(torch.zeros(2, 3, 8), torch.tensor([0, 2]))
 
 
+@pytest.mark.slow
 def test_tiny_overfit_reaches_perfect_r_at_1() -> None:
     """16 random (caption, motion) pairs; joint training makes every caption retrieve its motion."""
     torch.manual_seed(0)

@@ -51,6 +51,7 @@ def _params(root: Path, out: Path, **data) -> dict:
     return params
 
 
+@pytest.mark.slow  # a whole extract_features stage run
 def test_store_holds_reference_features_spans_and_text(dataset, tmp_path):
     out = run(_params(dataset, tmp_path / "features"))
     meta = json.loads((out / "meta.json").read_text())
@@ -78,6 +79,7 @@ def test_store_holds_reference_features_spans_and_text(dataset, tmp_path):
     assert not (out / "skipped.json").exists()
 
 
+@pytest.mark.slow  # a whole extract_features stage run
 def test_worker_count_does_not_change_the_store(dataset, tmp_path):
     serial = _params(dataset, tmp_path / "one")
     serial["features"]["workers"] = 1
@@ -105,7 +107,7 @@ def test_bad_input_fails_naming_the_file_and_writes_nothing(dataset, tmp_path, m
     root = _corrupt_copy(dataset, tmp_path)
     out = tmp_path / "features"
     params = _params(root, out)
-    monkeypatch.setattr("stages.extract_features.load_params", lambda argv: params)
+    monkeypatch.setattr("pipelines.cli.load_params", lambda argv: params)
     with pytest.raises(SystemExit) as exc:
         main([])
     assert "0002.npy" in str(exc.value) and "nothing written" in str(exc.value)
@@ -113,6 +115,7 @@ def test_bad_input_fails_naming_the_file_and_writes_nothing(dataset, tmp_path, m
     assert [p.name for p in tmp_path.iterdir()] == ["corrupt"]  # no temp directory left behind
 
 
+@pytest.mark.slow  # a whole extract_features stage run
 def test_skip_mode_reports_what_it_skipped(dataset, tmp_path):
     root = _corrupt_copy(dataset, tmp_path)
     out = run(_params(root, tmp_path / "features", on_error="skip"))

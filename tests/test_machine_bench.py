@@ -6,7 +6,7 @@ import importlib.util
 import json
 from pathlib import Path
 
-import torch
+import pytest
 
 BENCH = Path(__file__).resolve().parents[1] / "benchmarks" / "machine.py"
 
@@ -18,14 +18,11 @@ def _load():
     return module
 
 
+@pytest.mark.usefixtures("one_thread")  # main() sets torch's thread count; the fixture restores it
 def test_machine_benchmark_prints_and_writes_json(tmp_path, capsys, monkeypatch):
     bench = _load()
     monkeypatch.setattr(bench, "SHAPES", {"tiny": (32, 16, 8)})
-    threads = torch.get_num_threads()
-    try:
-        result = bench.main(["--threads", "1", "--repeats", "2", "--json", str(tmp_path / "m.json")])
-    finally:
-        torch.set_num_threads(threads)
+    result = bench.main(["--threads", "1", "--repeats", "2", "--json", str(tmp_path / "m.json")])
     lines = capsys.readouterr().out.strip().splitlines()
     assert lines[0].strip().startswith("tiny:") and lines[0].endswith("GFLOP/s")
     assert lines[-1].startswith(f"machine: {bench.cpu_model()}, 1 threads, fp32 matmul ")

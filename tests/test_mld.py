@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import math
-from collections.abc import Iterator
 
 import pytest
 import torch
@@ -18,13 +17,7 @@ L, C = 2, 8  # latent tokens x channels
 D = 263
 
 
-@pytest.fixture(autouse=True, scope="module")
-def _one_thread() -> Iterator[None]:
-    """Tiny networks: thread start-up dominates, and 2 shared cores make 2 threads ~5x slower."""
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
+pytestmark = pytest.mark.usefixtures("one_thread")  # tiny networks (tests/conftest.py)
 
 
 @pytest.fixture(scope="module")
@@ -179,6 +172,7 @@ def test_mld_loss_value(schedule: NoiseSchedule) -> None:
     assert torch.equal(out["total"], out["mse"])
 
 
+@pytest.mark.slow
 def test_mld_loss_decreases_on_tiny_overfit(schedule: NoiseSchedule) -> None:
     g = _gen(0)
     z0, text = torch.randn(8, L, C, generator=g), torch.randn(8, E, generator=g)

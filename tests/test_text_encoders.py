@@ -147,6 +147,7 @@ def test_minilm_unit_norm_and_paraphrases(minilm_out: TextEncoding) -> None:
     assert para > unrelated + 0.3
 
 
+@pytest.mark.slow  # loads sentence-transformers too
 def test_minilm_matches_sentence_transformers(minilm_out: TextEncoding, st_model) -> None:
     ref = st_model.encode(CAPTIONS, normalize_embeddings=True, batch_size=3, convert_to_numpy=True)
     err = np.abs(minilm_out.pooled - ref).max()
@@ -174,6 +175,7 @@ def test_minilm_mask_and_padding(minilm_out: TextEncoding) -> None:
     assert np.all(np.abs(minilm_out.tokens[minilm_out.mask]).max(axis=-1) > 0)
 
 
+@pytest.mark.slow  # encodes the captions twice more
 def test_minilm_batch_size_invariance(minilm: MiniLMEncoder, minilm_out: TextEncoding) -> None:
     for bs in (1, 3):
         out = minilm.encode(CAPTIONS, batch_size=bs)
@@ -182,6 +184,7 @@ def test_minilm_batch_size_invariance(minilm: MiniLMEncoder, minilm_out: TextEnc
         assert np.abs(out.tokens - minilm_out.tokens).max() <= 1e-5
 
 
+@pytest.mark.slow  # loads a second MiniLM
 def test_minilm_deterministic_across_instances(minilm_out: TextEncoding) -> None:
     other = MiniLMEncoder()
     for _ in range(2):
@@ -345,6 +348,7 @@ _OFFLINE_CHILD = textwrap.dedent(
 )
 
 
+@pytest.mark.slow  # a fresh Python process loading both encoders
 def test_loads_offline_without_network(tiny_clip: dict[str, Path], minilm_out: TextEncoding, tmp_path: Path):
     """A fresh process with an empty HF cache, a bogus hub endpoint and sockets disabled still loads both."""
     env = dict(os.environ)

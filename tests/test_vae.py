@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import math
-from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -25,13 +24,7 @@ JOINTS = 22
 D = 263
 
 
-@pytest.fixture(autouse=True, scope="module")
-def _one_thread() -> Iterator[None]:
-    """Tiny networks: thread start-up dominates, and 2 shared cores make 2 threads ~5x slower."""
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
+pytestmark = pytest.mark.usefixtures("one_thread")  # tiny networks (tests/conftest.py)
 
 
 def _gen(seed: int = 0) -> torch.Generator:
@@ -236,6 +229,7 @@ def test_vae_loss_combines_terms(stats: tuple[torch.Tensor, ...]) -> None:
     assert vae.dist_tokens.grad is not None and vae.final_layer.weight.grad is not None
 
 
+@pytest.mark.slow
 def test_tiny_vae_overfits_eight_motions(stats: tuple[torch.Tensor, ...]) -> None:
     mean, std = stats
     lengths = torch.tensor([16, 12, 16, 10, 14, 16, 11, 16])
