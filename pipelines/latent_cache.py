@@ -11,6 +11,8 @@ Used by ``train_mld`` and by every stage that trains in MLD's latent space.
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import torch
 from torch.utils.data import Dataset, default_collate
@@ -18,6 +20,7 @@ from torch.utils.data import Dataset, default_collate
 from data.motion_dataset import MotionTextDataset, pad_tokens
 from models.mld import latent_std
 from models.vae import LatentDistribution, MotionVAE
+from pipelines.mld_family import load_vae
 
 
 class LatentTextDataset(Dataset):
@@ -69,3 +72,11 @@ def measure_latent_std(data: LatentTextDataset, seed: int = 0) -> float:
     """Std of one sampled latent per training item (the LDM scale factor s)."""
     z = LatentDistribution(data.mu, data.logvar).sample(torch.Generator().manual_seed(seed))
     return latent_std(z)
+
+
+def latent_dataset(config: dict) -> LatentTextDataset:
+    """The latent cache of a loop config with ``features_dir``, ``mean``, ``std``, ``crop_frames``, ``vae_dir``,
+    ``max_text_tokens`` and the denoiser's ``model.word_tokens`` (word tokens are served unless "none")."""
+    motions = MotionTextDataset(config["features_dir"], "train", config["mean"], config["std"], config["crop_frames"])
+    words = config["max_text_tokens"] if config["model"].get("word_tokens", "none") != "none" else 0
+    return LatentTextDataset(motions, load_vae(Path(config["vae_dir"])), word_tokens=words)

@@ -2,9 +2,10 @@
 
 - :func:`load_vae` / :func:`load_mld`: trained models from ``train_vae`` / ``train_mld`` outputs.
 - :class:`MLDGenerator`: DDIM over the VAE latent with classifier-free guidance, then decoding.
+- :class:`MotionLCMGenerator`: the distilled student, one pass per step, then decoding.
 - :class:`VAEReconstruction`: the VAE's encode (posterior mean) -> decode of real motions.
-- :func:`vae_rows`, :func:`mld_rows`, :func:`mld_generator`: the registry's entries
-  (``pipelines/registry.py``).
+- :func:`vae_rows`, :func:`mld_rows`, :func:`mld_generator`, :func:`motionlcm_rows`,
+  :func:`motionlcm_generator`: the registry's entries (``pipelines/registry.py``).
 """
 
 from __future__ import annotations
@@ -19,6 +20,7 @@ from data.motion_dataset import pad_tokens
 from models.diffusion import NoiseSchedule
 from models.generator import Generator, Reconstructor, TextBatch
 from models.mld import MLDConfig, MLDDenoiser, sample_mld
+from models.motionlcm import TIMESTEPS, sample_motionlcm
 from models.vae import MotionVAE, MotionVAEConfig, length_sorted_chunks
 from pipelines.checkpoint import load_final_model
 
@@ -44,6 +46,16 @@ def load_vae(out_dir: Path) -> MotionVAE:
     return vae.eval()
 
 
+def load_motionlcm(out_dir: Path, use_ema: bool = False) -> MLDDenoiser:
+    """The distilled student of a ``distill_lcm`` output folder (the online student, as MotionLCM
+    releases it, unless ``use_ema``: the target network)."""
+    payload = load_final_model(out_dir)
+    student = MLDDenoiser(MLDConfig(**payload["config"]["model"]))
+    weights = payload["ema"].get("student") if use_ema else None
+    student.load_state_dict(weights or payload["models"]["student"])
+    return student.eval()
+
+
 def load_mld(out_dir: Path, use_ema: bool = True) -> tuple[MLDDenoiser, NoiseSchedule, dict[str, Any]]:
     """The trained denoiser (EMA weights when present), its noise schedule and its loop config."""
     payload = load_final_model(out_dir)
@@ -52,6 +64,14 @@ def load_mld(out_dir: Path, use_ema: bool = True) -> tuple[MLDDenoiser, NoiseSch
     weights = payload["ema"].get("denoiser") if use_ema else None
     denoiser.load_state_dict(weights or payload["models"]["denoiser"])
     return denoiser.eval(), noise_schedule(config), config
+
+
+def _word_tokens(denoiser: MLDDenoiser, text: TextBatch) -> dict[str, torch.Tensor]:
+    """The prompts' padded word tokens and mask for a ``word_tokens`` denoiser, else nothing."""
+    if denoiser.config.word_tokens == "none":
+        return {}
+    tokens, mask = pad_tokens([np.asarray(t, np.float32) for t in text.tokens])
+    return {"text_tokens": tokens, "text_mask": mask}
 
 
 class MLDGenerator:
@@ -68,12 +88,29 @@ class MLDGenerator:
     @torch.inference_mode()
     def sample(self, text: TextBatch, lengths: np.ndarray, seed: int) -> np.ndarray:
         generator = torch.Generator().manual_seed(seed)
-        words = {}
-        if self.denoiser.config.word_tokens != "none":
-            tokens, mask = pad_tokens([np.asarray(t, np.float32) for t in text.tokens])
-            words = {"text_tokens": tokens, "text_mask": mask}
+        words = _word_tokens(self.denoiser, text)
         out = sample_mld(self.denoiser, self.vae, self.schedule, torch.from_numpy(text.pooled.astype(np.float32)),
                          torch.as_tensor(lengths), self.num_steps, self.guidance, generator, **words)
+        return out.numpy()
+
+
+class MotionLCMGenerator:
+    """MotionLCM: LCM multistep sampling with the guidance-embedded student, then VAE decoding."""
+
+    stochastic = True
+
+    def __init__(self, name: str, student: MLDDenoiser, vae: MotionVAE, schedule: NoiseSchedule,
+                 num_steps: int, guidance: float) -> None:
+        self.name, self.student, self.vae, self.schedule = name, student, vae, schedule
+        self.num_steps, self.w = num_steps, guidance - 1.0
+        self.nfe = num_steps
+
+    @torch.inference_mode()
+    def sample(self, text: TextBatch, lengths: np.ndarray, seed: int) -> np.ndarray:
+        words = _word_tokens(self.student, text)
+        out = sample_motionlcm(self.student, self.vae, self.schedule, torch.from_numpy(text.pooled.astype(np.float32)),
+                               torch.as_tensor(lengths), self.num_steps, self.w,
+                               torch.Generator().manual_seed(seed), **words)
         return out.numpy()
 
 
@@ -108,12 +145,35 @@ def _mld(ctx: EvalContext, steps: int, guidance: float) -> MLDGenerator:
 
 def mld_rows(ctx: EvalContext) -> list[Generator]:
     """MLD with DDIM 50 (its published sampler) and the few-step DDIM 1/2/4 baselines (one load)."""
-    first = _mld(ctx, MLD_ROW_STEPS[0], ctx.params["train_mld"]["guidance"])
+    first = _mld(ctx, MLD_ROW_STEPS[0], ctx.params["sample"]["mld_guidance"])
     return [first] + [MLDGenerator(f"MLD-DDIM{n}", first.denoiser, first.vae, first.schedule, n, first.guidance)
                       for n in MLD_ROW_STEPS[1:]]
 
 
 def mld_generator(ctx: EvalContext, options: GenerateOptions) -> Generator:
     """``stages.generate --model mld``: DDIM-50 and the trained guidance unless told otherwise."""
-    guidance = ctx.params["train_mld"]["guidance"] if options.guidance is None else options.guidance
+    guidance = ctx.params["sample"]["mld_guidance"] if options.guidance is None else options.guidance
     return _mld(ctx, options.steps or DEFAULT_STEPS, guidance)
+
+
+def _motionlcm(ctx: EvalContext, steps: int, guidance: float) -> MotionLCMGenerator:
+    _, schedule, _ = load_mld(ctx.trained("train_mld"))
+    student = load_motionlcm(ctx.trained("distill_lcm"))
+    return MotionLCMGenerator(f"MotionLCM-{steps}", student, load_vae(ctx.trained("train_vae")), schedule, steps,
+                              guidance)
+
+
+def motionlcm_rows(ctx: EvalContext) -> list[Generator]:
+    """MotionLCM with 1, 2 and 4 steps (one load)."""
+    first = _motionlcm(ctx, 1, ctx.params["sample"]["motionlcm_guidance"])
+    return [first] + [MotionLCMGenerator(f"MotionLCM-{n}", first.student, first.vae, first.schedule, n,
+                                         first.w + 1.0) for n in sorted(TIMESTEPS)[1:]]
+
+
+def motionlcm_generator(ctx: EvalContext, options: GenerateOptions) -> Generator:
+    """``stages.generate --model motionlcm``: one step and the configured guidance unless told otherwise."""
+    steps = options.steps or 1
+    if steps not in TIMESTEPS:
+        raise ValueError(f"--steps {steps}: MotionLCM samples with {sorted(TIMESTEPS)} steps")
+    guidance = ctx.params["sample"]["motionlcm_guidance"] if options.guidance is None else options.guidance
+    return _motionlcm(ctx, steps, guidance)

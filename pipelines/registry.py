@@ -92,8 +92,11 @@ FAMILIES: dict[str, ModelFamily] = {family.name: family for family in (
     ModelFamily("vae", "pipelines.mld_family", "vae_rows", train_stages=("train_vae",),
                 description="MLD's motion VAE: reconstruction of the test motions"),
     ModelFamily("mld", "pipelines.mld_family", "mld_rows", train_stages=("train_vae", "train_mld"),
-                params=("train_mld.guidance",), generator="mld_generator",
+                params=("sample.mld_guidance",), generator="mld_generator",
                 description="MLD: latent diffusion, DDIM with classifier-free guidance"),
+    ModelFamily("motionlcm", "pipelines.mld_family", "motionlcm_rows",
+                train_stages=("train_vae", "train_mld", "distill_lcm"), params=("sample.motionlcm_guidance",),
+                generator="motionlcm_generator", description="MotionLCM: the MLD teacher distilled, 1-4 steps"),
 )}
 
 

@@ -78,7 +78,7 @@ from ray.tune.search.basic_variant import BasicVariantGenerator
 from ray.util.placement_group import PlacementGroup, remove_placement_group
 
 from data.atomic import atomic_directory
-from pipelines.checkpoint import MODEL_FILE
+from pipelines.checkpoint import MODEL_FILE, load_state
 from pipelines.runner import (
     LoopSettings,
     RayOptions,
@@ -354,12 +354,17 @@ class SweepTarget:
         prerequisite: run once on the driver before the trials (e.g. a pretraining run every
             trial builds on); gets a work directory and the Ray storage and returns loop-config
             overrides applied to every trial.
+        validate: ``(trial params, loop config, final training state) -> metrics`` measured on
+            held-out data after a trial's training and reported to Tune once more (e.g.
+            ``val_FID``), so ``sweep.settings.metric`` can rank trials by a validation metric
+            rather than by their training loss.
     """
 
     stage: str
     spec: TrainSpec
     loop_config: Callable[[dict], dict]
     prerequisite: Prerequisite | None = None
+    validate: Callable[[dict, dict, dict], dict[str, float]] | None = None
 
 
 @dataclass(frozen=True)
@@ -405,12 +410,18 @@ class SweepReportCallback(TuneReportCallback):
 def trial_driver(config: dict, job: SweepJob) -> None:
     """Tune function trainable: one Ray Train run of the target with this trial's values."""
     stage = job.target.stage
-    loop_config = job.target.loop_config(apply_trial(job.params, stage, config)) | job.overrides
+    params = apply_trial(job.params, stage, config)
+    loop_config = job.target.loop_config(params) | job.overrides
     trial_id = tune.get_context().get_trial_id()
-    callback = SweepReportCallback(LoopSettings.from_config(loop_config).max_steps)
+    planned = LoopSettings.from_config(loop_config).max_steps
     trainer = build_trainer(stage, job.target.spec, loop_config, job.ray, job.storage,
-                            callbacks=[callback], run_name=f"{stage}-{trial_id}")
-    trainer.fit()
+                            callbacks=[SweepReportCallback(planned)], run_name=f"{stage}-{trial_id}")
+    result = trainer.fit()
+    if job.target.validate is not None and result.checkpoint is not None:
+        with result.checkpoint.as_directory() as directory:
+            state = load_state(Path(directory))
+        metrics = job.target.validate(params, loop_config, state)
+        tune.report({**metrics, "step": state["step"], "planned_steps": planned})
 
 
 def train_once(stage: str, spec: TrainSpec, loop_config: Mapping[str, Any], ray_cfg: Mapping[str, Any] | None,

@@ -13,27 +13,19 @@ uses 1.0 (the ``paper`` profile sets ``normalize_latents: false``).
 
 from __future__ import annotations
 
-from pathlib import Path
 from typing import Any
 
 import torch
 
-from data.motion_dataset import MotionTextDataset
 from models.mld import MLDConfig, MLDDenoiser, mld_loss
 from models.vae import LatentDistribution
 from pipelines.checkpoint import load_final_model
 from pipelines.cli import artifacts_dir, repo_path
 from pipelines.feature_store import FeatureStore
-from pipelines.latent_cache import LatentTextDataset, collate_words, measure_latent_std
-from pipelines.mld_family import load_vae, noise_schedule
+from pipelines.latent_cache import collate_words, latent_dataset, measure_latent_std
+from pipelines.mld_family import noise_schedule
 from pipelines.runner import Components, StepContext, TrainSpec
 from pipelines.stage import TrainingStage, main
-
-
-def dataset(config: dict) -> LatentTextDataset:
-    motions = MotionTextDataset(config["features_dir"], "train", config["mean"], config["std"], config["crop_frames"])
-    words = config["max_text_tokens"] if config["model"].get("word_tokens", "none") != "none" else 0
-    return LatentTextDataset(motions, load_vae(Path(config["vae_dir"])), word_tokens=words)
 
 
 def build(config: dict) -> Components:
@@ -70,15 +62,17 @@ def stage_config(params: dict[str, Any]) -> dict[str, Any]:
         "beta_schedule": cfg["beta_schedule"], "beta_start": cfg["beta_start"], "beta_end": cfg["beta_end"],
         "num_train_timesteps": cfg["num_train_timesteps"], "model": model,
     }
-    scale = measure_latent_std(dataset(config), seed=params["train_mld"]["loop"]["seed"]) if cfg["normalize_latents"] \
-        else 1.0
+    scale = 1.0
+    if cfg["normalize_latents"]:
+        scale = measure_latent_std(latent_dataset(config), seed=cfg["loop"]["seed"])
     config["model"]["latent_scale"] = round(float(scale), 6)
     return config
 
 
 STAGE = TrainingStage(
-    name="train_mld", module=__name__, spec=TrainSpec(build=build, dataset=dataset, step=step, collate=collate_words),
-    config=stage_config, inputs=("features_dir", "vae_dir"),
+    name="train_mld", module=__name__, config=stage_config,
+    spec=TrainSpec(build=build, dataset=latent_dataset, step=step, collate=collate_words),
+    inputs=("features_dir", "vae_dir"),
     params=("train_mld", "features.out", "paths", "ray"),
 )
 

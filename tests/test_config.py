@@ -37,10 +37,14 @@ def test_paper_profile_is_mlds_published_architecture():
     # denoiser width = the VAE's latent_dim (no latent projections), MLD's 9 layers, ff 1024, 768-d time sinusoid
     assert {k: mld["model"][k] for k in ("hidden_dim", "layers", "ff_dim", "time_freq_dim", "word_tokens")} == {
         "hidden_dim": None, "layers": 9, "ff_dim": 1024, "time_freq_dim": 768, "word_tokens": "none"}
-    assert (mld["guidance"], mld["beta_schedule"], mld["num_train_timesteps"], mld["lr"]) == (
+    assert (paper["sample"]["mld_guidance"], mld["beta_schedule"], mld["num_train_timesteps"], mld["lr"]) == (
         7.5, "scaled_linear", 1000, 1e-4)
     assert vae["kl_weight"] == 1e-4 and vae["loop"]["length_buckets"] == 0
     assert (vae["joint_space"], vae["joint_weight"]) == ("global", 1.0)  # MLD's joint loss
+    lcm = paper["distill_lcm"]  # MotionLCM V2's distillation settings
+    assert (tuple(lcm["w_range"]), lcm["ema_decay"], lcm["num_ddim_steps"], lcm["distance"], lcm["huber_c"]) == (
+        (5.0, 15.0), 0.95, 10, "huber", 0.5)
+    assert (lcm["lr"], lcm["loop"]["batch_size"], paper["sample"]["motionlcm_guidance"]) == (2e-4, 128, 8.0)
 
 
 def test_dotted_override_parses_yaml_values_and_keeps_the_rest():

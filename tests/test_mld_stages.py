@@ -14,11 +14,12 @@ import pytest
 
 from models.generator import Generator, TextBatch
 from pipelines.checkpoint import load_final_model
-from pipelines.latent_cache import collate_words
+from pipelines.latent_cache import collate_words, latent_dataset
 from pipelines.mld_family import MLDGenerator, load_mld, load_vae
 from pipelines.registry import FAMILIES
+from pipelines.runner import run_training
 from pipelines.stage import loop_config, train
-from stages import evaluate, generate, report, train_evaluator, train_mld, train_vae
+from stages import distill_lcm, evaluate, generate, report, train_evaluator, train_mld, train_vae
 
 pytestmark = pytest.mark.slow
 
@@ -37,6 +38,7 @@ def trained(small_store, ray_cluster):
         params[stage]["crop_frames"] = 64
     params["train_vae"]["model"].update(latent_dim=16, **TINY_NET)
     params["train_mld"]["model"].update(time_freq_dim=16, **TINY_NET)
+    params["distill_lcm"]["loop"].update(max_steps=6, batch_size=8, log_every=3, warmup_steps=0)
     params["evaluate"].update(replications=1, diversity_times=10, mm_texts=4, mm_repeats=11, timing_sentences=2)
     params["evaluate"]["samples"].update(prompts=["a person walks forward"], length=40)
     in_process = copy.deepcopy(params)
@@ -83,7 +85,7 @@ def test_latent_cache_is_each_items_own_posterior(trained):
 
     config = loop_config(train_mld.STAGE, trained)
     assert config["model"]["latent_scale"] > 0
-    data = train_mld.dataset(config)
+    data = latent_dataset(config)
     vae = load_vae(Path(config["vae_dir"]))
     for k in (0, len(data) // 2, len(data) - 1):
         x, n = data.motions.window(k)
@@ -101,7 +103,7 @@ def test_latent_items_carry_their_captions_word_tokens(trained):
 
     config = loop_config(train_mld.STAGE, trained)
     assert config["model"]["word_tokens"] != "none" and config["model"]["token_dim"] == 384
-    data = train_mld.dataset(config)
+    data = latent_dataset(config)
     torch.manual_seed(3)
     items = [data[k] for k in range(8)]
     for k, item in enumerate(items):
@@ -141,10 +143,12 @@ def test_mld_generator_is_seeded_and_zero_padded(trained):
 
 
 def test_evaluation_stages_and_report(trained):
+    train(distill_lcm.STAGE, trained)
     """Each family's stage writes its rows; the report merges them in registry order after Real."""
     rows = {name: evaluate.run(name, trained) for name in ("real", *FAMILIES)}
     assert list(rows["real"]) == ["Real"] and list(rows["baselines"]) == ["Random", "Retrieval"]
     assert list(rows["vae"]) == ["VAE"] and list(rows["mld"]) == ["MLD-DDIM50", "MLD-DDIM1", "MLD-DDIM2", "MLD-DDIM4"]
+    assert list(rows["motionlcm"]) == ["MotionLCM-1", "MotionLCM-2", "MotionLCM-4"]
     table = report.run(trained)
     assert list(table) == [row for name in ("real", *FAMILIES) for row in rows[name]]
     assert table["VAE"]["MPJPE_mm"] > 0 and "MPJPE_mm" not in table["Real"]
@@ -169,3 +173,32 @@ def test_generate_command_writes_joints_and_animation(trained, tmp_path):
     assert [p.name for p in gifs] == ["m_0.gif", "m_1.gif"] and all(p.stat().st_size > 1000 for p in gifs)
     with pytest.raises(ValueError, match="unknown model family 'nope'"):
         generate.generate(trained, "nope", ["x"], [40], tmp_path / "x.npy")
+
+
+def test_distill_lcm_trains_resumes_exactly_and_samples(trained, tmp_path):
+    """MotionLCM through the runner: a 3-step run resumed to 6 steps equals 6 steps straight
+    (constant LR, so the schedule does not depend on max_steps); then its rows and the CLI."""
+    params = copy.deepcopy(trained)
+    params["distill_lcm"]["loop"].update(batch_size=8, log_every=3, warmup_steps=0, lr_schedule="constant")
+    config = loop_config(distill_lcm.STAGE, params)
+    assert config["model"]["time_cond_dim"] == 256 and config["teacher_dir"].endswith("train_mld")
+    storage = str(tmp_path / "ray")
+    straight = run_training("lcm", distill_lcm.STAGE.spec, config | {"max_steps": 6}, params["ray"],
+                            tmp_path / "straight", storage)
+    run_training("lcm", distill_lcm.STAGE.spec, config | {"max_steps": 3}, params["ray"], tmp_path / "part", storage,
+                 run_name="lcm-resumed")
+    resumed = run_training("lcm", distill_lcm.STAGE.spec, config | {"max_steps": 6}, params["ray"],
+                           tmp_path / "resumed", storage, run_name="lcm-resumed")
+    assert straight.attempts == [0] and resumed.attempts == [0, 3]
+    a, b = load_final_model(tmp_path / "straight"), load_final_model(tmp_path / "resumed")
+    for part in ("models", "ema"):
+        for key, value in a[part]["student"].items():
+            assert np.array_equal(value.numpy(), b[part]["student"][key].numpy()), (part, key)
+    train(distill_lcm.STAGE, params)
+    rows = evaluate.run("motionlcm", params)
+    assert list(rows) == ["MotionLCM-1", "MotionLCM-2", "MotionLCM-4"]
+    assert [rows[f"MotionLCM-{n}"]["NFE"] for n in (1, 2, 4)] == [1, 2, 4]
+    [npy] = generate.generate(params, "motionlcm", ["a person kicks"], [44], tmp_path / "kick.npy", seed=3)
+    assert np.load(npy).shape == (44, 22, 3)
+    with pytest.raises(ValueError, match="MotionLCM samples with"):
+        generate.generate(params, "motionlcm", ["x"], [40], tmp_path / "x.npy", steps=3)

@@ -1,0 +1,47 @@
+"""Validation metrics for sweeps: a trial's generator scored on the validation split.
+
+Sweeps rank trials by what a user cares about, not by training loss: :func:`generator_scores`
+runs one replication of the evaluation protocol (:mod:`pipelines.evaluation`) on the ``val`` split
+with the trained evaluator, and :func:`motionlcm_scores` is ``distill_lcm``'s sweep hook (its
+one-step FID and R@3). Imported only when sweeping, so the training stages do not depend on it.
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+from typing import Any
+
+import torch
+
+from data.skeleton import get_skeleton
+from models.generator import Generator
+from models.mld import MLDConfig, MLDDenoiser
+from pipelines.cli import artifacts_dir, repo_path
+from pipelines.evaluation import EvalConfig, evaluate, load_evaluator, references
+from pipelines.feature_store import FeatureStore
+from pipelines.mld_family import MotionLCMGenerator, load_mld, load_vae
+
+
+def generator_scores(params: dict[str, Any], generator: Generator, split: str = "val") -> dict[str, float]:
+    """``val_FID`` and ``val_R_precision_top3`` of ``generator`` (one replication, no MultiModality)."""
+    store = FeatureStore(repo_path(params, "features.out"))
+    items = store.split(split)
+    section = {key: value for key, value in params["evaluate"].items() if key != "samples"}
+    cfg = replace(EvalConfig(**section), replications=1, mm_repeats=0, timing_sentences=1,
+                  diversity_times=min(section["diversity_times"], len(items) - 1))
+    embedder = load_evaluator(artifacts_dir(params) / "train_evaluator")
+    refs = references(items, embedder, cfg)
+    row = evaluate(refs, items, store.mean, store.std, embedder, get_skeleton(params["data"]["skeleton"]), cfg,
+                   [generator])[generator.name]
+    return {f"{split}_FID": row["FID"], f"{split}_R_precision_top3": row["R_precision_top3"]}
+
+
+def motionlcm_scores(params: dict[str, Any], loop_config: dict[str, Any], state: dict[str, Any]) -> dict[str, float]:
+    """A ``distill_lcm`` trial's online student, sampled in one step, scored on the validation split."""
+    student = MLDDenoiser(MLDConfig(**loop_config["model"]))
+    student.load_state_dict(state["models"]["student"])
+    _, schedule, _ = load_mld(artifacts_dir(params) / "train_mld")
+    generator = MotionLCMGenerator("MotionLCM-1", student.eval(), load_vae(artifacts_dir(params) / "train_vae"),
+                                   schedule, 1, params["sample"]["motionlcm_guidance"])
+    with torch.inference_mode():
+        return generator_scores(params, generator)
