@@ -19,15 +19,11 @@ sequence (``"sequence"``: ``[z_t; time; text; words]`` with a key-padding mask o
 or are a cross-attention memory of every layer (``"cross_attention"``: memory ``[text; words]`` plus
 a positional encoding, missing tokens masked; the pooled text token keeps the memory non-empty for
 the null caption). Cross-attention costs less: the words are keys and values only, not queries
-through the feed-forward (3 layers of width 128, batch 64, 16 words: 30 ms forward+backward against
-54 ms for the sequence and 14 ms without words). Why word tokens at all: MLD's
-pooled CLIP token is the causal transformer's end-of-text state, which sees word order; our MiniLM
-substitute is a mean over tokens and does not. Its cosine similarity is 0.995 between "a person
-walks forward then turns around" and "... turns around then walks forward", and 0.98 between
-"waves with the right hand" and "... left hand", so a denoiser that sees only the pooled vector
-can hardly tell order or side apart, while the evaluator's word-level GRU can. On the ``tiny`` MLD
-(same VAE, 10000 steps, 2 replications) DDIM-50 R@3 / FID went from 0.78 / 4.5 without words to
-0.87 / 3.2 with ``"sequence"`` and 0.90 / 3.4 with ``"cross_attention"``.
+through the feed-forward. Why word tokens at all: MLD's pooled CLIP token is the causal
+transformer's end-of-text state, which sees word order; our MiniLM substitute is a mean over tokens
+and does not, so a denoiser that sees only the pooled vector can hardly tell order or side apart,
+while the evaluator's word-level GRU can (measurements: docs/findings.md, "Word tokens for MLD's
+text conditioning").
 
 MotionLCM hooks: ``time_cond_dim`` adds the LCM guidance-scale embedding, ``Linear(time_cond_dim -> F,
 bias=False)`` zero-initialised and added to the sinusoid before the MLP (so a student loaded from a

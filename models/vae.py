@@ -35,10 +35,7 @@ frame's joints minus its root joint (still in the global orientation, so a wrong
 error: the root-aligned positions MLD's MPJPE measures). Why ``"root"`` exists: the global positions
 integrate the root velocity over the whole clip, so their error is dominated by trajectory drift that
 the per-frame root-velocity features already supervise, and the gradient goes there instead of to
-the pose. On the ``tiny`` VAE, 1000 steps, test MPJPE was 78 mm with ``"global"``, 66 mm with
-``"root"`` and 61 mm with ``"root"`` at joint weight 10, which also made it reconstruct turns (real
-180-degree turns came back as 40-190 degrees instead of 8-38); raising the *global* term's weight
-made it worse (3: 84 mm, 10: 95 mm).
+the pose (measurements: docs/findings.md, "The root-aligned joint loss").
 """
 
 from __future__ import annotations
@@ -70,10 +67,10 @@ class MotionVAEConfig:
 
     ``logvar_offset`` is a constant added to the encoder's log sigma^2 (MLD: 0). MLD reads log sigma^2
     straight off the encoder's final LayerNorm, so it starts near 0 (sigma ~ 1, as wide as the prior)
-    and the reconstruction loss narrows it only slowly: after the tiny profile's 3000 steps the median
-    sigma was still 0.90 against a spread of mu of 1.0, so the decoder trained on latents that were
-    mostly noise. A negative offset starts the posterior narrow (-6: sigma ~ 0.05 at init); the KL term
-    is unchanged and can widen it again. It is a reparameterisation, not a new parameter.
+    and the reconstruction loss narrows it only slowly, so the decoder trains on latents that are
+    mostly noise (docs/findings.md, "The VAE posterior offset"). A negative offset starts the
+    posterior narrow (sigma = exp(offset / 2) at init); the KL term is unchanged and can widen it
+    again. It is a reparameterisation, not a new parameter.
     """
 
     feature_dim: int = 263
