@@ -680,8 +680,9 @@ def ensure_ray(address: str | None, runtime_env: dict | None = None) -> bool:
     token-authenticated cluster the caller needs ``RAY_AUTH_MODE=token`` in its env.
 
     A local cluster starts lean, so that its helper processes take less CPU from the training: no
-    dashboard (Ray still runs its minimal API server), no metrics collection, no event-loop
-    statistics. Workers' output still reaches the driver (the progress lines are printed there).
+    metrics collection, no event-loop statistics. The dashboard stays: it serves the State API,
+    which Ray Train's placement-group cleaner polls (without it the cleaner cannot tell a dead
+    controller from a live one and warns every second). Workers' output still reaches the driver.
     """
     import ray
     from ray._private.services import canonicalize_bootstrap_address
@@ -692,8 +693,7 @@ def ensure_ray(address: str | None, runtime_env: dict | None = None) -> bool:
     lean: dict[str, Any] = {}
     if address in (None, "local") and canonicalize_bootstrap_address(address) is None:  # ray.init will start one
         # A new dict on every call: ray.init adds its object-spilling settings to the one it gets.
-        lean = {"include_dashboard": False,
-                "_system_config": {"enable_metrics_collection": False, "event_stats": False}}
+        lean = {"_system_config": {"enable_metrics_collection": False, "event_stats": False}}
     ray.init(address=address, runtime_env=runtime_env, **lean)
     return True
 
