@@ -34,6 +34,7 @@ from typing import Literal, NamedTuple
 
 import torch
 from torch import Tensor, nn
+from torch.nn import functional as F
 
 Activation = Literal["gelu", "relu", "silu"]
 PositionalEncodingKind = Literal["sinusoidal", "learned"]
@@ -126,6 +127,37 @@ class PositionalEncoding(nn.Module):
 # --------------------------------------------------------------------------------------------------
 
 
+def batch_first_attention(
+    mha: nn.MultiheadAttention, query: Tensor, memory: Tensor, key_padding_mask: Tensor | None = None
+) -> Tensor:
+    """``mha(query, memory, memory, key_padding_mask=mask, need_weights=False)[0]``, computed batch-first.
+
+    query (B, S, d), memory (B, M, d) (``memory is query`` for self-attention), mask (B, M) bool
+    True = ignored -> (B, S, d). The same parameters and arithmetic as PyTorch's batch-first
+    ``nn.MultiheadAttention`` (packed in-projection, a float mask with -inf on ignored keys,
+    ``scaled_dot_product_attention`` with the module's dropout in training, out-projection), without
+    its round trip through the sequence-first layout and the copies that forces, forward and backward
+    (and in place of its inference fast path, which is slower here with a padding mask).
+    """
+    b, s, d = query.shape
+    heads = mha.num_heads
+    split = (heads, d // heads)
+    weight, bias = mha.in_proj_weight, mha.in_proj_bias
+    if memory is query:
+        qkv = F.linear(query, weight, bias).unflatten(-1, (3, *split))  # (B, S, 3, heads, d/heads)
+        q, k, v = qkv.permute(2, 0, 3, 1, 4).unbind(0)
+    else:
+        q = F.linear(query, weight[:d], None if bias is None else bias[:d]).unflatten(-1, split).transpose(1, 2)
+        kv = F.linear(memory, weight[d:], None if bias is None else bias[d:]).unflatten(-1, (2, *split))
+        k, v = kv.permute(2, 0, 3, 1, 4).unbind(0)
+    mask = None
+    if key_padding_mask is not None:
+        mask = torch.zeros(b, 1, 1, memory.shape[1], dtype=q.dtype, device=q.device)
+        mask.masked_fill_(key_padding_mask[:, None, None, :], float("-inf"))
+    out = F.scaled_dot_product_attention(q, k, v, mask, mha.dropout if mha.training else 0.0)
+    return mha.out_proj(out.transpose(1, 2).reshape(b, s, d))
+
+
 class TransformerLayer(nn.Module):
     """One DETR-style layer: self-attention, optional cross-attention, feed-forward; post- or pre-norm.
 
@@ -159,11 +191,11 @@ class TransformerLayer(nn.Module):
         self.drop_sa, self.drop_ca, self.drop_ff = nn.Dropout(dropout), nn.Dropout(dropout), nn.Dropout(dropout)
 
     def _sa(self, x: Tensor, mask: Tensor | None) -> Tensor:
-        return self.drop_sa(self.self_attn(x, x, x, key_padding_mask=mask, need_weights=False)[0])
+        return self.drop_sa(batch_first_attention(self.self_attn, x, x, mask))
 
     def _ca(self, x: Tensor, memory: Tensor, mask: Tensor | None) -> Tensor:
         assert self.cross_attn is not None
-        return self.drop_ca(self.cross_attn(x, memory, memory, key_padding_mask=mask, need_weights=False)[0])
+        return self.drop_ca(batch_first_attention(self.cross_attn, x, memory, mask))
 
     def forward(
         self,
