@@ -21,7 +21,7 @@ import numpy as np
 import torch
 
 from data.kinematics import Z_AXIS, facing_forward, forward_kinematics, inverse_kinematics
-from data.rotations import Array, normalize, qbetween, qinv, qmul, qrot, quat_to_cont6d, yaw_to_quat
+from data.rotations import Array, normalize, qbetween, qinv, qmul, qrot, quat_to_cont6d
 from data.skeleton import Skeleton
 
 HEADING_SMOOTH_SIGMA = 20.0
@@ -196,17 +196,29 @@ def _as_torch(features: Array, min_dim: int) -> tuple[torch.Tensor, np.dtype | N
     return tensor, np_dtype
 
 
-def _recover_root_torch(data: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """(..., T, D) tensor -> root quaternions (..., T, 4), root positions (..., T, 3)."""
+def _unrotate_yaw(c: torch.Tensor, s: torch.Tensor, x: torch.Tensor, z: torch.Tensor) -> tuple[torch.Tensor, ...]:
+    """x and z of ``qrot(qinv(q), v)`` for yaw quaternions ``q = (c, 0, s, 0)``; y is unchanged.
+
+    The products and sums that :func:`qrot`'s two cross products reduce to when the quaternion's x
+    and z parts are 0, in the same order, so the result is the same bit for bit (finite input)
+    without the cross products' work on the zero parts.
+    """
+    sx, sz = s * x, s * z
+    return x + 2.0 * (c * -sz - s * sx), z + 2.0 * (c * sx - s * sz)
+
+
+def _recover_root_torch(data: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """(..., T, D) tensor -> cos and sin of the heading angle (..., T) each, root positions (..., T, 3).
+
+    The heading quaternion of frame t is ``(cos a_t, 0, sin a_t, 0)``.
+    """
     omega = data[..., 0]
     angle = torch.cat([torch.zeros_like(omega[..., :1]), torch.cumsum(omega[..., :-1], -1)], -1)
-    r_rot = yaw_to_quat(2.0 * angle)
-    zero = torch.zeros_like(data[..., :-1, 1])
-    vel = torch.stack([data[..., :-1, 1], zero, data[..., :-1, 2]], -1)
-    vel = qrot(qinv(r_rot[..., 1:, :]), vel)
+    c, s = torch.cos(angle), torch.sin(angle)
+    vel = torch.stack(_unrotate_yaw(c[..., 1:], s[..., 1:], data[..., :-1, 1], data[..., :-1, 2]), -1)
     xz = torch.cat([torch.zeros_like(vel[..., :1, :]), torch.cumsum(vel, -2)], -2)
-    r_pos = torch.stack([xz[..., 0], data[..., 3], xz[..., 2]], -1)
-    return r_rot, r_pos
+    r_pos = torch.stack([xz[..., 0], data[..., 3], xz[..., 1]], -1)
+    return c, s, r_pos
 
 
 def recover_root_rot_pos(features: Array) -> tuple[Array, Array]:
@@ -224,7 +236,9 @@ def recover_root_rot_pos(features: Array) -> tuple[Array, Array]:
         differentiable.
     """
     data, np_dtype = _as_torch(features, 4)
-    r_rot, r_pos = _recover_root_torch(data)
+    c, s, r_pos = _recover_root_torch(data)
+    zero = torch.zeros_like(c)
+    r_rot = torch.stack([c, zero, s, zero], -1)
     if np_dtype is None:
         return r_rot, r_pos
     return r_rot.numpy().astype(np_dtype), r_pos.numpy().astype(np_dtype)
@@ -243,11 +257,11 @@ def recover_from_ric(features: Array, joints_num: int) -> Array:
     """
     groups = feature_groups(joints_num)
     data, np_dtype = _as_torch(features, groups["ric"].stop)
-    r_rot, r_pos = _recover_root_torch(data)
+    c, s, r_pos = _recover_root_torch(data)
     ric = data[..., groups["ric"]].reshape(*data.shape[:-1], joints_num - 1, 3)
-    ric = qrot(qinv(r_rot[..., None, :]), ric)
-    root_xz = r_pos[..., None, :] * torch.tensor([1.0, 0.0, 1.0], dtype=data.dtype, device=data.device)
-    joints = torch.cat([r_pos[..., None, :], ric + root_xz], -2)
+    x, z = _unrotate_yaw(c[..., None], s[..., None], ric[..., 0], ric[..., 2])  # heading -> world, plus root XZ
+    ric = torch.stack([x + r_pos[..., None, 0], ric[..., 1], z + r_pos[..., None, 2]], -1)
+    joints = torch.cat([r_pos[..., None, :], ric], -2)
     return joints if np_dtype is None else joints.numpy().astype(np_dtype)
 
 
