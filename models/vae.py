@@ -49,7 +49,7 @@ import torch
 from torch import Tensor, nn
 from torch.nn import functional as F
 
-from data.features import recover_from_ric
+from data.features import feature_groups, recover_from_ric
 from models.transformer import Activation, PositionalEncoding, PositionalEncodingKind, SkipTransformer, lengths_to_mask
 
 DecoderArch = Literal["cross_attention", "self_attention"]
@@ -270,9 +270,10 @@ def reconstruction_losses(
     if joint_space not in ("global", "root"):
         raise ValueError(f"joint_space must be 'global' or 'root', got {joint_space!r}")
     valid = lengths_to_mask(torch.as_tensor(lengths, device=recon.device), recon.shape[1])
-    mean_t, std_t = _stat(mean, recon), _stat(std, recon)
-    j_hat = recover_from_ric(recon * std_t + mean_t, joints_num)
-    j = recover_from_ric(target * std_t + mean_t, joints_num)
+    used = feature_groups(joints_num)["ric"].stop  # recover_from_ric reads the root and RIC groups only
+    mean_t, std_t = _stat(mean, recon)[:used], _stat(std, recon)[:used]
+    j_hat = recover_from_ric(recon[..., :used] * std_t + mean_t, joints_num)
+    j = recover_from_ric(target[..., :used] * std_t + mean_t, joints_num)
     if joint_space == "root":
         j_hat, j = j_hat - j_hat[..., :1, :], j - j[..., :1, :]
     return {"feature": masked_smooth_l1(recon, target, valid), "joint": masked_smooth_l1(j_hat, j, valid)}
