@@ -202,3 +202,20 @@ def test_distill_lcm_trains_resumes_exactly_and_samples(trained, tmp_path):
     assert np.load(npy).shape == (44, 22, 3)
     with pytest.raises(ValueError, match="MotionLCM samples with"):
         generate.generate(params, "motionlcm", ["x"], [40], tmp_path / "x.npy", steps=3)
+
+
+def test_distill_lcm_sweep_ranks_trials_by_a_validation_metric(trained):
+    """Two trials of distill_lcm (fixed w vs a w range), each scored after training on the val split."""
+    from pipelines.sweep import run_sweep
+
+    params = copy.deepcopy(trained)
+    params["evaluate"]["group_size"] = 4  # the fixture's val split is small
+    params["distill_lcm"]["loop"].update(max_steps=2, batch_size=8, log_every=1, warmup_steps=0)
+    params["sweep"]["settings"].update(num_samples=1, metric="val_FID", mode="min", scheduler="fifo",
+                                       report_every=2, max_concurrent_trials=1)
+    params["sweep"]["distill_lcm"] = {"w_range": "grid([[1.0, 3.0], [2.0, 2.0]])"}
+    result = run_sweep(distill_lcm.sweep_target(params), params, Path(params["paths"]["artifacts"]).parent)
+    assert [row["status"] for row in result.table] == ["completed", "completed"]
+    scores = [row["val_FID"] for row in result.table]
+    assert all(np.isfinite(scores)) and result.best["val_FID"] == min(scores)
+    assert result.best["w_range"] in ([1.0, 3.0], [2.0, 2.0])
