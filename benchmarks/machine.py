@@ -1,12 +1,10 @@
 """How fast is this machine for our models? fp32 matmul throughput with torch on the CPU.
 
-Measures GFLOP/s (``2 M N K / seconds``) of ``torch.matmul`` in float32 at a fixed thread count
-(default 2, the stages' thread count) for a few shapes typical of the models: 256 and 1024 square,
-and a batch of frames through a linear layer, (64 * 196, 128) x (128, 256). Each shape is warmed
-up, then timed as the median of several repetitions. The summary is the median over the shapes,
-a number to compare stage times between machines of the same kind. Other processes competing for
-the cores lower the numbers (most of all at 2 threads on 2 cores), so the 1-minute load average
-before the run is reported alongside.
+Measures GFLOP/s (``2 M K N / seconds``) of ``torch.matmul`` in float32 at a fixed thread count
+(default 2, the stages' thread count) for shapes typical of the models: 256 and 1024 square, and a
+batch of frames through a linear layer, (64 * 196, 128) x (128, 256); each warmed up, then the
+median of several repetitions. The summary (median over the shapes) compares stage times between
+machines of one kind. Other processes on the cores lower the numbers, so the load average is shown.
 
 Usage: ``python benchmarks/machine.py [--threads 2] [--repeats 15] [--json PATH]``
 """
@@ -31,14 +29,15 @@ SHAPES: dict[str, tuple[int, int, int]] = {
 
 
 def cpu_model() -> str:
-    """The CPU's ``model name`` from /proc/cpuinfo ("unknown" elsewhere)."""
+    """The first CPU's ``model name`` from /proc/cpuinfo, with its family and model numbers (which tell
+    apart CPUs a virtual machine names alike); "unknown" without /proc/cpuinfo."""
     try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
+        text = Path("/proc/cpuinfo").read_text().split("\n\n")[0]
     except OSError:
-        pass
-    return "unknown"
+        return "unknown"
+    info = dict(line.split(":", 1) for line in text.splitlines() if ":" in line)
+    info = {key.strip(): value.strip() for key, value in info.items()}
+    return f"{info.get('model name', 'unknown')} (family {info.get('cpu family', '?')} model {info.get('model', '?')})"
 
 
 def matmul_gflops(m: int, k: int, n: int, repeats: int, min_seconds: float = 0.05) -> float:
