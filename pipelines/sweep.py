@@ -414,8 +414,11 @@ def trial_driver(config: dict, job: SweepJob) -> None:
     loop_config = job.target.loop_config(params) | job.overrides
     trial_id = tune.get_context().get_trial_id()
     planned = LoopSettings.from_config(loop_config).max_steps
+    # With a validation hook the trial reports once, after training (Tune checks that every report
+    # holds the ranking metric); without one, training metrics are reported as they come.
+    callbacks = [SweepReportCallback(planned)] if job.target.validate is None else []
     trainer = build_trainer(stage, job.target.spec, loop_config, job.ray, job.storage,
-                            callbacks=[SweepReportCallback(planned)], run_name=f"{stage}-{trial_id}")
+                            callbacks=callbacks, run_name=f"{stage}-{trial_id}")
     result = trainer.fit()
     if job.target.validate is not None and result.checkpoint is not None:
         with result.checkpoint.as_directory() as directory:
