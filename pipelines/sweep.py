@@ -86,9 +86,9 @@ from pipelines.runner import (
     build_trainer,
     decide_use_gpu,
     ensure_ray,
-    resolve_storage,
     run_training,
 )
+from pipelines.stage import ray_storage
 
 logger = logging.getLogger(__name__)
 
@@ -505,12 +505,6 @@ class SweepResult:
     restored: bool
 
 
-def sweep_storage(params: Mapping[str, Any], repo_root: Path) -> str:
-    """Ray storage for trials and the Tune experiment: ``ray.storage``, else ``paths.ray_storage``."""
-    storage = (params.get("ray") or {}).get("storage") or str(repo_root / params["paths"]["ray_storage"])
-    return resolve_storage(storage)
-
-
 def _trial_ray_options(params: Mapping[str, Any], settings: SweepSettings) -> RayOptions:
     """The ``ray`` section for trials: Train workers (never in-process) reporting every ``report_every``."""
     opts = RayOptions.from_dict(params.get("ray"))
@@ -692,7 +686,7 @@ def run_sweep(target: SweepTarget, params: dict, repo_root: Path, *, callbacks: 
     space = parse_space(stage, sweep.get(stage), params[stage])
     name = experiment_name(stage, space, settings, params[stage])
     opts = _trial_ray_options(params, settings)
-    storage = sweep_storage(params, repo_root)
+    storage = ray_storage(params)
     artifacts = repo_root / params["paths"]["artifacts"] / "sweeps"
     started = ensure_ray(opts.address, opts.runtime_env)
     try:
