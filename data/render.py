@@ -10,7 +10,9 @@ The camera is orthographic, looking down at ``elev`` degrees from ``azim`` degre
 vertical (0: from the front of a body facing +z; ``None``: 35 degrees off the motion's own
 initial facing direction). Bones of the left side are blue, the right side
 red, the spine black; the floor is a grey 0.5 m grid; the root's ground trajectory is a dashed
-line.
+green line. ``render_animation`` and ``render_strip`` also draw an optional target path (T, 3)
+(world positions, e.g. from :mod:`data.trajectories`) as a solid magenta line on the floor; the
+camera then stays still, framing the whole target and the root's path.
 """
 
 from __future__ import annotations
@@ -34,6 +36,7 @@ MAX_FLOOR = 15.0  # floor grid half-size cap (m): a wild generated motion must n
 _COLORS = ("#d62728", "#1f77b4", "#222222", "#ff7f0e", "#17becf")  # chains: right leg, left leg, spine, r/l arm
 _FLOOR_COLOR = "#bbbbbb"
 _TRAJ_COLOR = "#2ca02c"
+TARGET_COLOR = "#e600e6"  # magenta: no bone, floor or trajectory colour mixes into it
 
 
 def joints_of(motion: np.ndarray, recover: Callable[[np.ndarray, int], np.ndarray] | None = None,
@@ -92,6 +95,26 @@ def _draw_trajectory(ax: Axes, camera: Camera, joints: np.ndarray) -> None:
     ax.plot(xy[:, 0], xy[:, 1], color=_TRAJ_COLOR, lw=1.0, ls="--", zorder=1)
 
 
+def _as_target(target_path: np.ndarray | None) -> np.ndarray | None:
+    """float64 (T, 3) copy of a target path, or None; raises ValueError on another shape or NaN/inf."""
+    if target_path is None:
+        return None
+    target = np.asarray(target_path, dtype=np.float64)
+    if target.ndim != 2 or target.shape[1] != 3 or len(target) < 2:
+        raise ValueError(f"target_path must be (T, 3) world positions with T >= 2, got shape {target.shape}")
+    if not np.isfinite(target).all():
+        raise ValueError("target_path has NaN or inf values")
+    return target
+
+
+def _draw_target(ax: Axes, camera: Camera, target: np.ndarray) -> None:
+    """The target path's projection on the floor y = 0, under the root trajectory and the pose."""
+    ground = target.copy()
+    ground[:, 1] = 0.0
+    xy = camera.project(ground)
+    ax.plot(xy[:, 0], xy[:, 1], color=TARGET_COLOR, lw=2.0, zorder=1)
+
+
 def _draw_pose(ax: Axes, camera: Camera, pose: np.ndarray, skeleton: Skeleton, alpha: float = 1.0,
                lw: float = 2.0) -> list:
     """Draw one pose (J, 3); returns the line artists (one per kinematic chain)."""
@@ -146,23 +169,41 @@ def _follow(joints: np.ndarray) -> np.ndarray:
     return gaussian_filter1d(joints[:, 0, [0, 2]], sigma=5.0, axis=0, mode="nearest")
 
 
+def _view(joints: np.ndarray, target: np.ndarray | None, radius: float) -> tuple[np.ndarray, float]:
+    """(T, 2) camera centres (x, z) and the view radius.
+
+    Without a target the camera follows the root at ``radius``. With one it stays on the middle of
+    the bounding square of the root's path and the target, widening ``radius`` to cover it (plus 0.5 m).
+    """
+    if target is None:
+        return _follow(joints), radius
+    ground = np.concatenate([joints[:, 0, [0, 2]], target[:, [0, 2]]])
+    lo, hi = ground.min(axis=0), ground.max(axis=0)
+    centers = np.broadcast_to((lo + hi) / 2, (len(joints), 2))
+    return centers, max(radius, float((hi - lo).max()) / 2 + 0.5)
+
+
 def render_frames(joints: np.ndarray, caption: str | None = None, skeleton: Skeleton = HUMANML3D,
                   stride: int = 1, size: float = 3.2, dpi: int = 80, azim: float | None = None,
-                  elev: float = 15.0) -> list[Image.Image]:
+                  elev: float = 15.0, *, target_path: np.ndarray | None = None) -> list[Image.Image]:
     """One RGB image per ``stride``-th frame: the pose, the floor, the trajectory, the caption.
 
-    The camera follows the root; the floor grid and the trajectory are drawn once and the pose
-    lines are updated in place, so a frame costs one canvas draw.
+    The camera follows the root; given a ``target_path`` (T, 3), drawn on the floor, it stays
+    still, framing the target and the root's path (see :func:`_view`). The floor grid and the
+    paths are drawn once and the pose lines are updated in place, so a frame costs one canvas draw.
     """
     joints = _as_joints(joints)
+    target = _as_target(target_path)
     camera = Camera(facing_azimuth(joints, skeleton) if azim is None else azim, elev)
-    centers = _follow(joints)
+    centers, radius = _view(joints, target, 1.5)
     height = max(float(joints[..., 1].max()) + 0.1, 2.0)
     fig, ax = _frame_figure(size, dpi)
     canvas = FigureCanvasAgg(fig)
-    _setup_axes(ax, camera, centers[0], 1.5, height)
+    _setup_axes(ax, camera, centers[0], radius, height)
     middle = (centers.min(axis=0) + centers.max(axis=0)) / 2
-    _draw_floor(ax, camera, middle, float(np.abs(centers - middle).max()) + 2.0)
+    _draw_floor(ax, camera, middle, float(np.abs(centers - middle).max()) + radius + 0.5)
+    if target is not None:
+        _draw_target(ax, camera, target)
     _draw_trajectory(ax, camera, joints)
     lines = _draw_pose(ax, camera, joints[0], skeleton)
     _title(ax, caption, 40, 8)
@@ -172,7 +213,7 @@ def render_frames(joints: np.ndarray, caption: str | None = None, skeleton: Skel
         for line, chain in zip(lines, skeleton.kinematic_chain, strict=True):
             xy = camera.project(joints[t, list(chain)])
             line.set_data(xy[:, 0], xy[:, 1])
-        x0, x1, y0, y1 = _limits(camera, centers[t], 1.5, height)
+        x0, x1, y0, y1 = _limits(camera, centers[t], radius, height)
         ax.set_xlim(x0, x1)
         ax.set_ylim(y0, y1)
         clock.set_text(f"{t / skeleton.fps:5.2f}s")  # also keeps Pillow from merging still frames
@@ -194,15 +235,17 @@ def _save_gif(images: Sequence[Image.Image], path: Path, duration_ms: int) -> No
 
 
 def render_animation(joints: np.ndarray, path: Path | str, caption: str | None = None,
-                     skeleton: Skeleton = HUMANML3D, stride: int = 2, **view: float) -> Path:
+                     skeleton: Skeleton = HUMANML3D, stride: int = 2, *, target_path: np.ndarray | None = None,
+                     **view: float) -> Path:
     """Write a GIF (or MP4, which needs ffmpeg) of a motion; returns the path.
 
-    ``stride`` keeps every n-th frame (the playback speed stays real time). ``view`` takes
-    ``size``, ``dpi``, ``azim`` and ``elev`` as in :func:`render_frames`.
+    ``stride`` keeps every n-th frame (the playback speed stays real time). ``target_path`` (T, 3)
+    is drawn on the floor as in :func:`render_frames`. ``view`` takes ``size``, ``dpi``, ``azim``
+    and ``elev`` as in :func:`render_frames`.
 
     Raises:
         RuntimeError: an MP4 was asked for and ffmpeg is not installed.
-        ValueError: an unknown file extension.
+        ValueError: an unknown file extension; a target path that is not (T, 3) finite positions.
     """
     path = Path(path)
     suffix = path.suffix.lower()
@@ -210,7 +253,7 @@ def render_animation(joints: np.ndarray, path: Path | str, caption: str | None =
         raise ValueError(f"{path}: expected a .gif or .mp4 file name")
     if suffix == ".mp4" and shutil.which("ffmpeg") is None:
         raise RuntimeError("writing MP4 needs ffmpeg on PATH; write a .gif instead")
-    images = render_frames(joints, caption, skeleton, stride, **view)
+    images = render_frames(joints, caption, skeleton, stride, target_path=target_path, **view)
     path.parent.mkdir(parents=True, exist_ok=True)
     if suffix == ".gif":
         _save_gif(images, path, int(round(1000 * stride / skeleton.fps)))
@@ -236,19 +279,29 @@ def _write_mp4(images: Sequence[Image.Image], path: Path, fps: float) -> None:
 
 def render_strip(joints: np.ndarray, path: Path | str, caption: str | None = None,
                  skeleton: Skeleton = HUMANML3D, count: int = 6, azim: float | None = None,
-                 elev: float = 15.0) -> Path:
-    """PNG of ``count`` evenly spaced frames side by side (a quick look at a motion)."""
+                 elev: float = 15.0, *, target_path: np.ndarray | None = None) -> Path:
+    """PNG of ``count`` evenly spaced frames side by side (a quick look at a motion).
+
+    Each panel follows the root; given a ``target_path`` (T, 3), drawn on the floor, every panel
+    shows the same view framing the target and the root's path (see :func:`_view`).
+
+    Raises:
+        ValueError: a target path that is not (T, 3) finite positions.
+    """
     joints = _as_joints(joints)
+    target = _as_target(target_path)
     times = np.linspace(0, len(joints) - 1, count).round().astype(int)
     camera = Camera(facing_azimuth(joints, skeleton) if azim is None else azim, elev)
-    centers = _follow(joints)
+    centers, radius = _view(joints, target, 0.8)
     height = max(float(joints[..., 1].max()) + 0.1, 2.0)
     fig = Figure(figsize=(2.4 * count, 3.0), dpi=80)
     fig.subplots_adjust(left=0.0, right=1.0, bottom=0.0, top=0.86, wspace=0.0)
     for k, t in enumerate(times):
         ax = fig.add_subplot(1, count, k + 1)
-        _setup_axes(ax, camera, centers[t], 0.8, height)
-        _draw_floor(ax, camera, centers[t], 1.0)
+        _setup_axes(ax, camera, centers[t], radius, height)
+        _draw_floor(ax, camera, centers[t], radius + 0.2)
+        if target is not None:
+            _draw_target(ax, camera, target)
         _draw_trajectory(ax, camera, joints)
         _draw_pose(ax, camera, joints[t], skeleton)
         ax.set_title(f"{t / skeleton.fps:.1f}s", fontsize=8)

@@ -8,9 +8,19 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from data.render import contact_sheet, joints_of, render_animation, render_strip
+from data.render import (
+    TARGET_COLOR,
+    Camera,
+    _limits,
+    _view,
+    contact_sheet,
+    joints_of,
+    render_animation,
+    render_strip,
+)
 from data.skeleton import HUMANML3D
 from data.synthetic import SyntheticConfig, generate_motion
+from data.trajectories import make_trajectory
 from stages import render as render_stage
 
 
@@ -113,3 +123,56 @@ def test_a_diverged_motion_still_renders(tmp_path):
         assert gif.n_frames == 12
     render_strip(wild, tmp_path / "wild.png", count=3)
     contact_sheet([wild], tmp_path / "wild_sheet.png")
+
+
+def _target_pixels(image: Image.Image) -> int:
+    """How many pixels have the target path's colour."""
+    rgb = np.asarray(image.convert("RGB"), dtype=np.int64)
+    target = np.array([int(TARGET_COLOR[k:k + 2], 16) for k in (1, 3, 5)])
+    return int((np.abs(rgb - target).max(axis=-1) < 40).sum())
+
+
+def test_strip_draws_the_target_path_only_when_given(tmp_path, motion):
+    circle = make_trajectory("circle", len(motion.joints))
+    with Image.open(render_strip(motion.joints, tmp_path / "target.png", count=3, target_path=circle)) as strip:
+        assert _is_drawn(strip) and _target_pixels(strip) > 300
+    with Image.open(render_strip(motion.joints, tmp_path / "plain.png", count=3)) as strip:
+        assert _is_drawn(strip) and _target_pixels(strip) == 0
+
+
+def test_animation_draws_the_target_path_only_when_given(tmp_path, motion):
+    joints = motion.joints[:40]
+    line = make_trajectory("line", len(joints))
+    for target, expect_drawn in ((line, True), (None, False)):
+        path = render_animation(joints, tmp_path / "m.gif", stride=8, target_path=target)
+        with Image.open(path) as gif:
+            assert gif.n_frames == 5
+            assert (_target_pixels(gif.convert("RGB")) > 50) == expect_drawn
+
+
+def test_the_view_frames_the_whole_target_path(motion):
+    """With a target the camera stays still on a box holding all of it; without, it follows the root."""
+    joints = motion.joints.astype(np.float64)
+    camera = Camera(20.0, 15.0)
+    for shape in ("circle", "line", "zigzag"):
+        target = make_trajectory(shape, len(joints), size=2.5).astype(np.float64)
+        centers, radius = _view(joints, target, 1.5)
+        assert np.ptp(centers, axis=0).max() == 0 and radius > 1.5
+        x0, x1, y0, y1 = _limits(camera, centers[0], radius, 2.0)
+        ground = target * [1.0, 0.0, 1.0]
+        xy = camera.project(np.concatenate([ground, joints[:, 0] * [1.0, 0.0, 1.0]]))
+        assert (xy[:, 0] > x0).all() and (xy[:, 0] < x1).all() and (xy[:, 1] > y0).all() and (xy[:, 1] < y1).all()
+    centers, radius = _view(joints, None, 1.5)
+    assert radius == 1.5 and np.ptp(centers, axis=0).max() > 0
+
+
+@pytest.mark.parametrize(
+    ("target", "match"),
+    [(np.zeros((10, 2)), r"\(T, 3\).*\(10, 2\)"), (np.zeros(10), r"\(10,\)"), (np.zeros((1, 3)), "T >= 2"),
+     (np.full((10, 3), np.nan), "NaN")],
+)
+def test_a_bad_target_path_is_refused(tmp_path, motion, target, match):
+    with pytest.raises(ValueError, match=match):
+        render_strip(motion.joints, tmp_path / "bad.png", target_path=target)
+    with pytest.raises(ValueError, match=match):
+        render_animation(motion.joints, tmp_path / "bad.gif", target_path=target)
