@@ -1,0 +1,750 @@
+"""EMDM: a conditional denoising-diffusion GAN for few-step text/action-to-motion (pure torch).
+
+Paper: Zhou et al., "EMDM: Efficient Motion Diffusion Model for Fast and High-Quality Motion
+Generation" (``shared/papers/000_*.txt``): Sec. 3.1 (Eqs. 3-12), Sec. 3.2 (Eq. 13, Algs. 1-2),
+Appendix C (architectures, Eqs. 14-16) and D; the released code as summarised in
+``reference/emdm_motiondiffuse.md`` section 1; DDGAN (Xiao et al. 2022) for the schedule. Shapes:
+B batch, N frames (padded), D feature dims (263), h transformer width. Features are the normalised
+HumanML3D vectors; padded frames are those at or after each sample's length.
+
+Contents:
+
+- :class:`EMDMSchedule`: the few-step VP schedule (T = 10), forward pairs and the posterior
+  ``q(x_t | x_{t+1}, x0)`` (Alg. 2); :func:`q_sample_pairs` draws DDGAN's training pairs.
+- :class:`EMDMConfig`, :class:`EMDMGenerator` ``G(x_{t+1}, t, z, c) -> x0_hat`` (Eq. 3) and
+  :class:`EMDMDiscriminator` ``D(x_t, x_{t+1}, t, c) -> logit`` (Eqs. 4-5).
+- Losses: :func:`d_adversarial_loss` (Eq. 4), :func:`g_adversarial_loss` (Eq. 6), :func:`r1_penalty`
+  (Eq. 16) with :func:`lazy_r1_scale`, :func:`geometric_losses` (Eqs. 7-12), and the two per-step
+  compositions :func:`discriminator_step_losses` / :func:`generator_step_losses` (Eqs. 14-15).
+- Sampling: :func:`guided_x0` (Eq. 13) and :func:`sample_emdm` (Alg. 1).
+
+Indexing (DDGAN's, which the code of both papers uses). States are levels ``k = 0..T``: ``x_0`` is
+the data, ``x_T`` ~ N(0, I). A step index ``t in 0..T-1`` names the transition ``x_t -> x_{t+1}``:
+a training pair is ``(x_t, x_{t+1})`` (the paper's ``(x_{t-1}, x_t)``), the generator sees
+``(x_{t+1}, t)`` and the posterior at ``t`` maps ``x_{t+1}`` to ``x_t``; sampling runs
+``t = T-1, ..., 0`` and the step at ``t = 0`` returns ``x0_hat`` exactly.
+
+Choices where the paper (or its code) is ambiguous or where we depart from it, each deliberate:
+
+1. Schedule: the data level ``x_0`` is exactly x0. DDGAN prepends a dummy ``beta_0 = 1e-8`` to its
+   forward arrays, which leaves 1e-4 noise on ``x_0``; we drop it (as ``models.diffusion`` does), so
+   ``alpha_bar_k = alpha_bar(u_k) / alpha_bar(u_0)`` and the posterior tables equal DDGAN's.
+   ``posterior_log_variance[0] = log(1e-20)`` as in DDGAN (its variance is 0; no noise is added).
+2. Generator: the released code's plain post-LN encoder stack (``nn.TransformerEncoder``), not the
+   "skip connections" that Sec. 4.1 mentions; SELU feed-forward activation (App. C.1); the timestep
+   token is ``MLP(sinusoid_h(t))`` of the integer step (MDM/EMDM code); the z token comes from a
+   5-layer mapping network ``[Linear, LeakyReLU(0.2)] x 5``; sinusoidal positions on all tokens;
+   unlike the code, padded frames are masked as attention keys and the output is 0 at padding.
+3. Condition dropout (Sec. 3.2, 10%): a dropped sample's condition token is a learned null token
+   (zero-initialised), for text and action alike; the code zeroes the CLIP feature before the
+   Linear, i.e. a fixed null token equal to that Linear's bias. Dropout is decided outside the
+   network (:func:`condition_dropout`) and passed as ``drop_cond``, so the training step owns its
+   randomness. The discriminator always sees the real condition (never dropped), as in the code.
+4. Discriminator: the paper's D is a 7-layer MLP over the flattened padded tensors with no masking
+   (App. C.2), so padding leaks into it. Ours is a small transformer over the frames of
+   ``Linear([x_t; x_{t+1}])`` plus a timestep token (DDGAN's 128-d sinusoid, dense-LeakyReLU-dense)
+   and a condition token (text: Linear of the raw pooled embedding; action: a learned table, i.e. a
+   Linear of the one-hot), padded frames masked as keys and excluded from a masked mean pool, then
+   an MLP head to one logit. Padding therefore cannot change D's output.
+5. R1 (Eq. 16): ``gamma/2 * E_b sum_{valid entries} (dD/dx_t)^2`` on the real ``x_t`` (padded
+   frames excluded), gamma = 0.02. Lazy regularisation as in StyleGAN2 (Karras et al. 2020, Sec.
+   3.1): applied every k = 15 D steps and multiplied by k, so that its average strength equals
+   gamma applied every step. (EMDM's code applies it every 15 steps without the factor k; StyleGAN2
+   also rescales Adam's lr and betas by k/(k+1), which is the optimiser's business, not done here.)
+   The R1 forward runs attention through PyTorch's "math" kernel: the fused CPU/CUDA kernels have
+   no double backward.
+6. Geometric loss (Eqs. 7-12): ``R * (L_recon + lambda (L_pos + L_vel + L_foot))``. Every term is a
+   masked mean: squared error summed over valid frames (or valid consecutive pairs) and elements,
+   divided by their count, per sample, then averaged over the batch (MDM's ``masked_l2``).
+   ``L_recon`` on the normalised features; ``L_pos`` on global joints ``recover_from_ric`` of the
+   denormalised features (the feature representation has no rotations-to-FK path that the paper's
+   FK needs, and recovery is causal, so padding cannot leak into valid frames); ``L_vel`` on joint
+   velocities (frame differences of those joints, pairs with both frames valid; Eq. 10 writes it on
+   x, the issue asks for joints); ``L_foot`` (Eq. 9) penalises the predicted velocity of the four
+   foot joints (ankles, toes) from frame i to i+1 where the ground-truth contact label of frame i
+   (the features' contacts group, denormalised and thresholded at 0.5) is on; HumanML3D defines
+   that label from the same i -> i+1 displacement. R = 100 for text, 1 for action (Sec. 5.2);
+   lambda defaults to 1 (the paper uses 1 for action, 0 for text: set ``geo_lambda``).
+7. One generator step uses ONE draw of (t, pair, z) for both the adversarial and the geometric
+   term (the code draws them independently, which costs a second G forward). The fake ``x_t`` of
+   the D step is computed without gradient into G (the code builds that graph and discards it).
+8. Classifier-free guidance (Eq. 13) on x0 with the same z for both passes; the unconditional and
+   conditional passes run in one forward on the doubled batch; guidance 1 runs the conditional
+   pass only.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterator, Mapping, Sequence
+from contextlib import contextmanager
+from dataclasses import dataclass
+from typing import Any, Literal
+
+import numpy as np
+import torch
+from torch import Tensor, nn
+from torch.nn import functional as F
+from torch.nn.attention import SDPBackend, sdpa_kernel
+
+from data.features import feature_groups, recover_from_ric
+from data.skeleton import SKELETONS
+from models.diffusion import cfg_combine, sample_timesteps
+from models.transformer import PositionalEncoding, TransformerLayer, lengths_to_mask, timestep_embedding
+
+Condition = Literal["text", "action"]
+EMDMActivation = Literal["selu", "gelu", "relu", "silu"]
+Lengths = Tensor | Sequence[int]
+
+_F64 = torch.float64
+_PREFIX_G = 3  # generator tokens before the frames: timestep, condition, z
+_PREFIX_D = 2  # discriminator tokens before the frames: timestep, condition
+
+
+# --------------------------------------------------------------------------------------------------
+# Small helpers
+# --------------------------------------------------------------------------------------------------
+
+
+def _rng_device(generator: torch.Generator | None, fallback: torch.device) -> torch.device:
+    return generator.device if generator is not None else fallback
+
+
+def _randn(shape: Sequence[int], like: Tensor, generator: torch.Generator | None) -> Tensor:
+    """N(0, I) of ``shape`` drawn on the generator's device, returned on ``like``'s device and dtype."""
+    dev = _rng_device(generator, like.device)
+    return torch.randn(tuple(shape), generator=generator, device=dev, dtype=like.dtype).to(like.device)
+
+
+def _valid_mask(lengths: Lengths, num_frames: int, device: torch.device) -> Tensor:
+    """(B, N) bool, True on valid frames."""
+    return lengths_to_mask(torch.as_tensor(lengths, device=device), num_frames)
+
+
+def _per_sample_steps(t: Tensor | int, batch: int, device: torch.device) -> Tensor:
+    t = torch.as_tensor(t, device=device).long()
+    return t.expand(batch) if t.ndim == 0 else t
+
+
+@contextmanager
+def _eval_mode(module: nn.Module) -> Iterator[None]:
+    flag = module.training
+    try:
+        module.eval()
+        yield
+    finally:
+        module.train(flag)
+
+
+# --------------------------------------------------------------------------------------------------
+# Schedule
+# --------------------------------------------------------------------------------------------------
+
+
+class EMDMSchedule:
+    """DDGAN's few-step discretised VP schedule (EMDM: T = 10, beta_min 0.1, beta_max 20).
+
+    Continuous VP SDE with linear ``beta(u) = beta_min + u (beta_max - beta_min)`` (Song et al. 2021)::
+
+        alpha_bar(u) = exp(-0.5 u^2 (beta_max - beta_min) - u beta_min)
+        u_k          = eps + (1 - eps) k / T,  k = 0..T,  eps = 1e-3
+
+    Levels (signal of ``x_k``; ``alpha_bar_0 = 1``, the data) and step betas::
+
+        alpha_bar_k  = alpha_bar(u_k) / alpha_bar(u_0)
+        beta_{k}     = 1 - alpha_bar_k / alpha_bar_{k-1},  k = 1..T     (so alpha_bar_k = prod (1 - beta))
+
+    Forward process: ``q(x_k | x0) = N(sqrt(alpha_bar_k) x0, (1 - alpha_bar_k) I)`` and one step
+    ``x_{t+1} = sqrt(1 - beta_{t+1}) x_t + sqrt(beta_{t+1}) eps``.
+
+    Posterior at step t = 0..T-1 (DDPM Eqs. 6-7; DDGAN ``Posterior_Coefficients``), with
+    ``b = beta_{t+1}``, ``a = alpha_bar_{t+1}``, ``a_prev = alpha_bar_t``::
+
+        q(x_t | x_{t+1}, x0) = N(coef1 x0 + coef2 x_{t+1}, var)
+        var    = b (1 - a_prev) / (1 - a)
+        coef1  = b sqrt(a_prev) / (1 - a)
+        coef2  = (1 - a_prev) sqrt(1 - b) / (1 - a)
+        logvar = log(max(var, 1e-20))
+
+    At t = 0 (``a_prev = 1``): var = 0, coef1 = 1, coef2 = 0 exactly, so the posterior returns x0.
+    T = 10 values: ``betas = [.105, .266, ..., .850]``, ``alpha_bar_1 = .8947``,
+    ``alpha_bar_10 = 4.3e-5``, ``coef2[9] = .387``. Tables are float64 (T,) (``alphas_cumprod`` and
+    ``time_points`` (T + 1,)); gathered values are cast to the tensor they multiply.
+    """
+
+    def __init__(
+        self, num_steps: int = 10, beta_min: float = 0.1, beta_max: float = 20.0, eps_small: float = 1e-3
+    ) -> None:
+        if num_steps < 1:
+            raise ValueError(f"num_steps must be >= 1, got {num_steps}")
+        self.num_steps, self.beta_min, self.beta_max, self.eps_small = num_steps, beta_min, beta_max, eps_small
+        u = eps_small + (1.0 - eps_small) * torch.arange(num_steps + 1, dtype=_F64) / num_steps
+        log_ab = -0.5 * u**2 * (beta_max - beta_min) - u * beta_min
+        ab = torch.exp(log_ab - log_ab[0])  # levels k = 0..T, ab[0] = 1 exactly
+        self.time_points = u
+        self.alphas_cumprod = ab
+        self.betas = 1.0 - ab[1:] / ab[:-1]
+        a, a_prev, b = ab[1:], ab[:-1], self.betas
+        self.posterior_variance = b * (1.0 - a_prev) / (1.0 - a)
+        self.posterior_log_variance = self.posterior_variance.clamp(min=1e-20).log()
+        self.posterior_mean_coef1 = b * a_prev.sqrt() / (1.0 - a)
+        self.posterior_mean_coef2 = (1.0 - a_prev) * (1.0 - b).sqrt() / (1.0 - a)
+
+    @staticmethod
+    def _gather(table: Tensor, index: Tensor | int, like: Tensor) -> Tensor:
+        idx = torch.as_tensor(index).detach().to("cpu", torch.long)
+        if idx.numel() and (int(idx.min()) < 0 or int(idx.max()) >= table.shape[0]):
+            raise IndexError(f"index out of range [0, {table.shape[0] - 1}]: {idx.tolist()}")
+        return table[idx].to(like.device, like.dtype).reshape(-1, *([1] * (like.ndim - 1)))
+
+    def q_sample(self, x0: Tensor, level: Tensor | int, noise: Tensor) -> Tensor:
+        """``x_k = sqrt(alpha_bar_k) x0 + sqrt(1 - alpha_bar_k) noise`` for levels k in 0..T (k = 0: x0)."""
+        a = self._gather(self.alphas_cumprod, level, x0)
+        return a.sqrt() * x0 + (1.0 - a).sqrt() * noise
+
+    def q_step(self, x_t: Tensor, t: Tensor | int, noise: Tensor) -> Tensor:
+        """One forward step ``x_{t+1} = sqrt(1 - beta_{t+1}) x_t + sqrt(beta_{t+1}) noise``, t in 0..T-1."""
+        b = self._gather(self.betas, t, x_t)
+        return (1.0 - b).sqrt() * x_t + b.sqrt() * noise
+
+    def posterior_mean_variance(self, x0: Tensor, x_next: Tensor, t: Tensor | int) -> tuple[Tensor, Tensor, Tensor]:
+        """Mean, variance and log-variance of ``q(x_t | x_{t+1} = x_next, x0)`` (class docstring)."""
+        mean = self._gather(self.posterior_mean_coef1, t, x0) * x0 + self._gather(
+            self.posterior_mean_coef2, t, x_next
+        ) * x_next
+        return mean, self._gather(self.posterior_variance, t, x_next), self._gather(
+            self.posterior_log_variance, t, x_next
+        )
+
+    def posterior_sample(self, x0: Tensor, x_next: Tensor, t: Tensor | int, noise: Tensor) -> Tensor:
+        """EMDM Alg. 2: ``mean + [t > 0] exp(logvar / 2) noise``; at t = 0 exactly x0."""
+        mean, _, log_var = self.posterior_mean_variance(x0, x_next, t)
+        nonzero = self._gather((torch.arange(self.num_steps) > 0).to(_F64), t, x_next)
+        return mean + nonzero * (0.5 * log_var).exp() * noise
+
+
+def q_sample_pairs(
+    schedule: EMDMSchedule, x0: Tensor, t: Tensor | int, generator: torch.Generator | None = None
+) -> tuple[Tensor, Tensor]:
+    """DDGAN's training pair ``(x_t, x_{t+1})`` at steps t (B,) in 0..T-1.
+
+    ``x_t ~ q(x_t | x0)`` (x0 itself where t = 0) and ``x_{t+1}`` is one forward step from it
+    (:meth:`EMDMSchedule.q_step`), so the pair is a consecutive draw of one forward trajectory. Both
+    noises come from ``generator``.
+    """
+    x_t = schedule.q_sample(x0, t, _randn(x0.shape, x0, generator))
+    return x_t, schedule.q_step(x_t, t, _randn(x0.shape, x0, generator))
+
+
+# --------------------------------------------------------------------------------------------------
+# Configuration and networks
+# --------------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class EMDMConfig:
+    """Hyper-parameters of EMDM; generator defaults are the paper's (App. C.1), the rest ours or the code's.
+
+    ``condition``: "text" (a pooled frozen text embedding (B, ``text_dim``); 384 for MiniLM) or
+    "action" (label indices (B,) in ``[0, num_actions)``). Generator: ``width`` h, ``layers``,
+    ``heads``, ``ff_dim``, ``dropout``, ``activation``, ``norm_first`` (False: post-LN as the code),
+    ``z_dim`` (64) through ``mapping_layers`` (5) Linear+LeakyReLU layers. Discriminator: ``d_*``
+    (a small masked transformer, module docstring item 4; no dropout), ``d_time_dim`` (DDGAN's 128).
+    Training: ``p_uncond`` (condition dropout, 0.1), ``r1_gamma`` (0.02), ``r1_interval`` (lazy R1
+    every k steps, scaled by k), ``geo_weight`` R (None: 100 for text, 1 for action), ``geo_lambda``.
+    Schedule: ``num_steps``, ``beta_min``, ``beta_max``. Sampling: ``guidance`` (2.5).
+    """
+
+    feature_dim: int = 263
+    condition: Condition = "text"
+    text_dim: int = 384
+    num_actions: int = 0
+    width: int = 1024
+    layers: int = 12
+    heads: int = 32
+    ff_dim: int = 1024
+    dropout: float = 0.1
+    activation: EMDMActivation = "selu"
+    norm_first: bool = False
+    z_dim: int = 64
+    mapping_layers: int = 5
+    d_width: int = 256
+    d_layers: int = 2
+    d_heads: int = 4
+    d_ff_dim: int = 512
+    d_time_dim: int = 128
+    p_uncond: float = 0.1
+    r1_gamma: float = 0.02
+    r1_interval: int = 15
+    geo_weight: float | None = None
+    geo_lambda: float = 1.0
+    num_steps: int = 10
+    beta_min: float = 0.1
+    beta_max: float = 20.0
+    guidance: float = 2.5
+
+    def __post_init__(self) -> None:
+        if self.condition not in ("text", "action"):
+            raise ValueError(f"condition must be 'text' or 'action', got {self.condition!r}")
+        if self.condition == "action" and self.num_actions < 1:
+            raise ValueError("condition='action' needs num_actions >= 1")
+        if self.activation not in ("selu", "gelu", "relu", "silu"):
+            raise ValueError(f"unknown activation {self.activation!r}")
+        if self.mapping_layers < 1:
+            raise ValueError(f"mapping_layers must be >= 1, got {self.mapping_layers}")
+
+    @property
+    def geometric_weight(self) -> float:
+        """R of Eq. 12: ``geo_weight``, or 100 for text and 1 for action (Sec. 5.2)."""
+        if self.geo_weight is not None:
+            return float(self.geo_weight)
+        return 100.0 if self.condition == "text" else 1.0
+
+    @property
+    def joints_num(self) -> int:
+        """J of the 12J - 1 feature layout (22 for 263 dims, 21 for 251)."""
+        if (self.feature_dim + 1) % 12:
+            raise ValueError(f"feature_dim {self.feature_dim} is not 12J - 1")
+        return (self.feature_dim + 1) // 12
+
+    def make_schedule(self) -> EMDMSchedule:
+        return EMDMSchedule(self.num_steps, self.beta_min, self.beta_max)
+
+
+def _as_config(config: EMDMConfig | Mapping[str, Any] | None) -> EMDMConfig:
+    return config if isinstance(config, EMDMConfig) else EMDMConfig(**dict(config or {}))
+
+
+def _transformer_layers(
+    num: int, dim: int, heads: int, ff_dim: int, dropout: float, activation: str, norm_first: bool
+) -> nn.ModuleList:
+    """``num`` :class:`TransformerLayer` s; SELU (not offered by the shared layer) replaces its FF activation."""
+    layers = nn.ModuleList()
+    for _ in range(num):
+        layer = TransformerLayer(
+            dim, heads, ff_dim, dropout, "gelu" if activation == "selu" else activation,  # type: ignore[arg-type]
+            norm_first=norm_first,
+        )
+        if activation == "selu":
+            layer.ff[1] = nn.SELU()
+        layers.append(layer)
+    return layers
+
+
+class ConditionEmbedding(nn.Module):
+    """Condition -> (B, dim): text (B, E) through ``Linear(E -> dim)``; action (B,) through a learned table.
+
+    The action table starts N(0, 1) as EMDM's ``nn.Parameter(randn(num_actions, d))``.
+    """
+
+    def __init__(self, condition: Condition, dim: int, text_dim: int, num_actions: int) -> None:
+        super().__init__()
+        self.condition = condition
+        if condition == "text":
+            self.embed: nn.Module = nn.Linear(text_dim, dim)
+        else:
+            self.embed = nn.Embedding(num_actions, dim)
+            nn.init.normal_(self.embed.weight)
+
+    def forward(self, cond: Tensor) -> Tensor:
+        if self.condition == "text":
+            return self.embed(cond.to(self.embed.weight.dtype))
+        return self.embed(cond.long())
+
+
+def mapping_network(z_dim: int, dim: int, num_layers: int = 5) -> nn.Sequential:
+    """EMDM's z mapping: ``[Linear, LeakyReLU(0.2)]`` x ``num_layers`` (z_dim -> dim -> ... -> dim)."""
+    mods: list[nn.Module] = []
+    for i in range(num_layers):
+        mods += [nn.Linear(z_dim if i == 0 else dim, dim), nn.LeakyReLU(0.2)]
+    return nn.Sequential(*mods)
+
+
+def condition_dropout(
+    batch: int, p: float, generator: torch.Generator | None = None, device: torch.device | str | None = None
+) -> Tensor:
+    """Which samples lose their condition for classifier-free guidance: (B,) bool, each True w.p. ``p``."""
+    dev = torch.device(device) if device is not None else _rng_device(generator, torch.device("cpu"))
+    if p <= 0:
+        return torch.zeros(batch, dtype=torch.bool, device=dev)
+    draw = torch.rand(batch, generator=generator, device=_rng_device(generator, dev))
+    return (draw < p).to(dev)
+
+
+class EMDMGenerator(nn.Module):
+    """EMDM's conditional generator ``G(x_{t+1}, t, z, c) -> x0_hat`` (Eq. 3, App. C.1).
+
+    Tokens ``[MLP(sinusoid(t)), cond or null, mapping(z), Linear(x_{t+1})_1..N]`` plus sinusoidal
+    positions, a post-LN transformer with the padded frames masked as keys, the first 3 outputs
+    discarded and ``Linear(h -> D)`` on the rest; padded frames of the output are 0 and padded inputs
+    are ignored. ``config`` is an :class:`EMDMConfig` or its dict.
+    """
+
+    def __init__(self, config: EMDMConfig | Mapping[str, Any] | None = None) -> None:
+        super().__init__()
+        cfg = _as_config(config)
+        self.config = cfg
+        h = cfg.width
+        self.frame_in = nn.Linear(cfg.feature_dim, h)
+        self.time_mlp = nn.Sequential(nn.Linear(h, h), nn.SiLU(), nn.Linear(h, h))
+        self.cond_embed = ConditionEmbedding(cfg.condition, h, cfg.text_dim, cfg.num_actions)
+        self.null_cond = nn.Parameter(torch.zeros(h))
+        self.mapping = mapping_network(cfg.z_dim, h, cfg.mapping_layers)
+        self.pos_encoding = PositionalEncoding(h, "sinusoidal")
+        self.layers = _transformer_layers(
+            cfg.layers, h, cfg.heads, cfg.ff_dim, cfg.dropout, cfg.activation, cfg.norm_first
+        )
+        self.frame_out = nn.Linear(h, cfg.feature_dim)
+
+    def condition_tokens(self, cond: Tensor, drop_cond: Tensor | None = None) -> Tensor:
+        """(B, h) condition tokens; rows where ``drop_cond`` (B,) bool is True get the null token."""
+        tokens = self.cond_embed(cond)
+        if drop_cond is None:
+            return tokens
+        null = self.null_cond.to(tokens.dtype).expand_as(tokens)
+        return torch.where(drop_cond.to(tokens.device).bool()[:, None], null, tokens)
+
+    def forward(
+        self,
+        x_next: Tensor,
+        t: Tensor | int,
+        z: Tensor,
+        cond: Tensor,
+        lengths: Lengths,
+        drop_cond: Tensor | None = None,
+    ) -> Tensor:
+        """x0_hat (B, N, D) from x_next (B, N, D) at step t (B,) int, z (B, z_dim), cond, lengths (B,).
+
+        ``cond``: (B, text_dim) float for text, (B,) int for action. ``drop_cond`` (B,) bool: use the
+        null condition for those samples (condition dropout in training, the unconditional pass of CFG).
+        """
+        b, n, _ = x_next.shape
+        valid = _valid_mask(lengths, n, x_next.device)
+        steps = _per_sample_steps(t, b, x_next.device)
+        frames = self.frame_in(torch.where(valid[..., None], x_next, 0.0))
+        prefix = torch.stack(
+            [
+                self.time_mlp(timestep_embedding(steps, self.config.width).to(frames.dtype)),
+                self.condition_tokens(cond, drop_cond).to(frames.dtype),
+                self.mapping(z.to(frames.dtype)),
+            ],
+            dim=1,
+        )
+        tokens = self.pos_encoding(torch.cat([prefix, frames], dim=1))
+        padding = torch.cat([valid.new_zeros(b, _PREFIX_G), ~valid], dim=1)
+        for layer in self.layers:
+            tokens = layer(tokens, padding)
+        out = self.frame_out(tokens[:, _PREFIX_G:])
+        return torch.where(valid[..., None], out, 0.0)
+
+
+class EMDMDiscriminator(nn.Module):
+    """Conditional discriminator ``D(x_t, x_{t+1}, t, c) -> logit`` (B,) (Eqs. 4-5; module docstring item 4).
+
+    Tokens ``[time(t), cond(c), Linear([x_t; x_{t+1}])_1..N]`` plus sinusoidal positions, a small
+    post-LN transformer with padded frames masked as keys, a mean over the valid frames' outputs and
+    ``Linear -> LeakyReLU(0.2) -> Linear(-> 1)``. The output does not depend on padded values or on the
+    amount of padding. No dropout (R1 and the GAN game want a deterministic D).
+    """
+
+    def __init__(self, config: EMDMConfig | Mapping[str, Any] | None = None) -> None:
+        super().__init__()
+        cfg = _as_config(config)
+        self.config = cfg
+        h, td = cfg.d_width, cfg.d_time_dim
+        self.frame_in = nn.Linear(2 * cfg.feature_dim, h)
+        self.time_mlp = nn.Sequential(nn.Linear(td, td), nn.LeakyReLU(0.2), nn.Linear(td, h))
+        self.cond_embed = ConditionEmbedding(cfg.condition, h, cfg.text_dim, cfg.num_actions)
+        self.pos_encoding = PositionalEncoding(h, "sinusoidal")
+        self.layers = _transformer_layers(cfg.d_layers, h, cfg.d_heads, cfg.d_ff_dim, 0.0, "gelu", False)
+        self.head = nn.Sequential(nn.Linear(h, h), nn.LeakyReLU(0.2), nn.Linear(h, 1))
+
+    def forward(self, x_t: Tensor, x_next: Tensor, t: Tensor | int, cond: Tensor, lengths: Lengths) -> Tensor:
+        """Logits (B,) for the pair (x_t, x_next), each (B, N, D), at step t (B,), condition and lengths."""
+        b, n, _ = x_t.shape
+        valid = _valid_mask(lengths, n, x_t.device)
+        steps = _per_sample_steps(t, b, x_t.device)
+        pair = torch.where(valid[..., None], torch.cat([x_t, x_next], dim=-1), 0.0)
+        frames = self.frame_in(pair)
+        time = timestep_embedding(steps, self.config.d_time_dim, flip_sin_to_cos=False).to(frames.dtype)
+        prefix = torch.stack([self.time_mlp(time), self.cond_embed(cond).to(frames.dtype)], dim=1)
+        tokens = self.pos_encoding(torch.cat([prefix, frames], dim=1))
+        padding = torch.cat([valid.new_zeros(b, _PREFIX_D), ~valid], dim=1)
+        for layer in self.layers:
+            tokens = layer(tokens, padding)
+        weights = valid.to(tokens.dtype)[..., None]
+        pooled = (tokens[:, _PREFIX_D:] * weights).sum(1) / weights.sum(1).clamp(min=1.0)
+        return self.head(pooled).squeeze(-1)
+
+
+# --------------------------------------------------------------------------------------------------
+# Adversarial losses and R1
+# --------------------------------------------------------------------------------------------------
+
+
+def d_adversarial_loss(real_logits: Tensor, fake_logits: Tensor) -> Tensor:
+    """Non-saturating D loss (Eq. 4): ``mean softplus(-D(real)) + mean softplus(D(fake))``."""
+    return F.softplus(-real_logits).mean() + F.softplus(fake_logits).mean()
+
+
+def g_adversarial_loss(fake_logits: Tensor) -> Tensor:
+    """Non-saturating G loss (Eq. 6): ``mean softplus(-D(fake))``."""
+    return F.softplus(-fake_logits).mean()
+
+
+def r1_penalty(real_logits: Tensor, x_real: Tensor, lengths: Lengths | None = None, gamma: float = 0.02) -> Tensor:
+    """R1 (Eq. 16; Mescheder et al. 2018): ``gamma / 2 * mean_b sum_{valid (n, d)} (dD_b / dx_real[b, n, d])^2``.
+
+    ``x_real`` (B, N, D) must require grad and ``real_logits`` (B,) be computed from it (through
+    :func:`double_backward_attention` for a transformer D); padded frames (``lengths``) are excluded.
+    The graph is kept (``create_graph``) so the penalty can be back-propagated into D.
+    """
+    (grad,) = torch.autograd.grad(real_logits.sum(), x_real, create_graph=True)
+    if lengths is not None:
+        grad = torch.where(_valid_mask(lengths, x_real.shape[1], x_real.device)[..., None], grad, 0.0)
+    return 0.5 * gamma * grad.square().flatten(1).sum(1).mean()
+
+
+def lazy_r1_scale(step: int, interval: int = 15) -> float:
+    """Lazy regularisation weight (StyleGAN2): ``interval`` on steps divisible by it, else 0 (skip R1).
+
+    ``interval <= 1`` means R1 every step with weight 1.
+    """
+    if interval <= 1:
+        return 1.0
+    return float(interval) if step % interval == 0 else 0.0
+
+
+@contextmanager
+def double_backward_attention() -> Iterator[None]:
+    """Run scaled-dot-product attention with the "math" kernel, whose graph supports double backward (R1)."""
+    with sdpa_kernel(SDPBackend.MATH):
+        yield
+
+
+# --------------------------------------------------------------------------------------------------
+# Geometric losses
+# --------------------------------------------------------------------------------------------------
+
+
+def _stat(x: Tensor | np.ndarray | Sequence[float], like: Tensor) -> Tensor:
+    return torch.as_tensor(np.asarray(x) if not isinstance(x, Tensor) else x).to(like.device, like.dtype)
+
+
+def masked_mse(pred: Tensor, target: Tensor, valid: Tensor) -> Tensor:
+    """Squared error over valid frames: per sample ``sum_{valid n, all elements} (pred - target)^2 /
+    (valid frames * elements per frame)``, then the mean over the batch. pred/target (B, N, ...), valid (B, N)."""
+    per_frame = (pred - target).square().flatten(2).sum(-1)
+    elements = per_frame.new_tensor(float(math.prod(pred.shape[2:])))
+    count = valid.sum(1).to(per_frame.dtype).clamp(min=1.0) * elements
+    return (torch.where(valid, per_frame, 0.0).sum(1) / count).mean()
+
+
+def _feet_of(joints_num: int) -> tuple[int, ...]:
+    for skeleton in SKELETONS.values():
+        if skeleton.joints_num == joints_num:
+            return skeleton.feet
+    raise ValueError(f"no known skeleton with {joints_num} joints: pass feet explicitly")
+
+
+def geometric_losses(
+    pred: Tensor,
+    target: Tensor,
+    lengths: Lengths,
+    mean: Tensor | np.ndarray,
+    std: Tensor | np.ndarray,
+    joints_num: int,
+    *,
+    weight: float = 100.0,
+    lam: float = 1.0,
+    feet: Sequence[int] | None = None,
+) -> dict[str, Tensor]:
+    """EMDM's geometric loss ``R (L_recon + lambda (L_pos + L_vel + L_foot))`` (Eqs. 7-12; docstring item 6).
+
+    pred = x0_hat, target = x0: normalised features (B, N, D); ``mean``/``std`` (D,) the statistics
+    they were normalised with; joints ``J(x) = recover_from_ric(x * std + mean)`` (B, N, J, 3).
+
+    - ``recon``: :func:`masked_mse` of the features;
+    - ``pos``: :func:`masked_mse` of J(pred) against J(target);
+    - ``vel``: of the joint velocities ``J[n+1] - J[n]``, over pairs with both frames valid;
+    - ``foot``: of ``(J(pred)[n+1, feet] - J(pred)[n, feet]) * contact[n]`` against 0, over valid
+      pairs, ``contact`` (B, N, 4) = ground-truth contacts group denormalised, > 0.5.
+
+    ``feet``: the 4 contact joints in contacts order (default: the skeleton with ``joints_num``
+    joints, HumanML3D (7, 10, 8, 11) or KIT). Returns ``recon``, ``pos``, ``vel``, ``foot``,
+    ``geo`` (the bracket) and ``total = weight * geo``.
+    """
+    groups = feature_groups(joints_num)
+    feet = tuple(_feet_of(joints_num) if feet is None else feet)
+    valid = _valid_mask(lengths, pred.shape[1], pred.device)
+    pairs = valid[:, 1:] & valid[:, :-1]
+    mean_t, std_t = _stat(mean, pred), _stat(std, pred)
+    used = groups["ric"].stop  # recovery reads only the root and RIC groups
+    j_hat = recover_from_ric(pred[..., :used] * std_t[:used] + mean_t[:used], joints_num)
+    j = recover_from_ric(target[..., :used] * std_t[:used] + mean_t[:used], joints_num)
+    v_hat, v = j_hat[:, 1:] - j_hat[:, :-1], j[:, 1:] - j[:, :-1]
+    contacts = target[..., groups["contacts"]] * std_t[groups["contacts"]] + mean_t[groups["contacts"]]
+    on = (contacts[:, :-1] > 0.5).to(pred.dtype)[..., None]  # (B, N-1, 4, 1)
+    foot_vel = v_hat[:, :, list(feet)] * on
+    terms = {
+        "recon": masked_mse(pred, target, valid),
+        "pos": masked_mse(j_hat, j, valid),
+        "vel": masked_mse(v_hat, v, pairs),
+        "foot": masked_mse(foot_vel, torch.zeros_like(foot_vel), pairs),
+    }
+    geo = terms["recon"] + lam * (terms["pos"] + terms["vel"] + terms["foot"])
+    return {**terms, "geo": geo, "total": weight * geo}
+
+
+# --------------------------------------------------------------------------------------------------
+# One training step's losses (DDGAN's loop, EMDM App. C.3)
+# --------------------------------------------------------------------------------------------------
+
+
+def discriminator_step_losses(
+    generator: EMDMGenerator,
+    discriminator: EMDMDiscriminator,
+    schedule: EMDMSchedule,
+    x0: Tensor,
+    cond: Tensor,
+    lengths: Lengths,
+    step: int,
+    generator_rng: torch.Generator | None = None,
+) -> dict[str, Tensor]:
+    """D's objective on a batch x0 (B, N, D) (Eq. 14 + lazy R1): ``total = real + fake + scale * r1``.
+
+    t ~ U{0..T-1}, a real pair (x_t, x_{t+1}) (:func:`q_sample_pairs`), a fake ``x_t`` = posterior
+    sample around ``G(x_{t+1}, t, z, c)`` (condition dropped w.p. ``p_uncond``, no gradient into G);
+    ``real = mean softplus(-D(x_t))``, ``fake = mean softplus(D(fake x_t))``; R1 on the real x_t with
+    weight :func:`lazy_r1_scale` (``step``, ``r1_interval``), ``r1`` reported unscaled (0 when skipped).
+    Only D's parameters receive gradients. All randomness from ``generator_rng``.
+    """
+    cfg = generator.config
+    b = x0.shape[0]
+    t = sample_timesteps(b, schedule.num_steps, generator_rng, _rng_device(generator_rng, x0.device)).to(x0.device)
+    x_t, x_next = q_sample_pairs(schedule, x0, t, generator_rng)
+    scale = lazy_r1_scale(step, cfg.r1_interval)
+    if scale > 0:
+        x_t = x_t.detach().requires_grad_(True)
+        with double_backward_attention():
+            real_logits = discriminator(x_t, x_next, t, cond, lengths)
+        r1 = r1_penalty(real_logits, x_t, lengths, cfg.r1_gamma)
+    else:
+        real_logits = discriminator(x_t, x_next, t, cond, lengths)
+        r1 = real_logits.new_zeros(())
+    with torch.no_grad():
+        drop = condition_dropout(b, cfg.p_uncond, generator_rng, x0.device)
+        x0_hat = generator(x_next, t, _randn((b, cfg.z_dim), x0, generator_rng), cond, lengths, drop_cond=drop)
+        fake_t = schedule.posterior_sample(x0_hat, x_next, t, _randn(x0.shape, x0, generator_rng))
+    fake_logits = discriminator(fake_t, x_next, t, cond, lengths)
+    real, fake = F.softplus(-real_logits).mean(), F.softplus(fake_logits).mean()
+    return {"real": real, "fake": fake, "r1": r1, "total": real + fake + scale * r1}
+
+
+def generator_step_losses(
+    generator: EMDMGenerator,
+    discriminator: EMDMDiscriminator,
+    schedule: EMDMSchedule,
+    x0: Tensor,
+    cond: Tensor,
+    lengths: Lengths,
+    mean: Tensor | np.ndarray,
+    std: Tensor | np.ndarray,
+    generator_rng: torch.Generator | None = None,
+) -> dict[str, Tensor]:
+    """G's objective on a batch x0 (B, N, D) (Eqs. 12, 15): ``total = adv + R * geo``.
+
+    One draw of t, pair, z and condition dropout (docstring item 7): ``x0_hat = G(x_{t+1}, t, z, c)``,
+    fake ``x_t`` = posterior sample, ``adv = mean softplus(-D(fake x_t, x_{t+1}, t, c))`` and
+    :func:`geometric_losses` of x0_hat against x0 (R = ``config.geometric_weight``, lambda =
+    ``geo_lambda``). Returns ``adv`` and the geometric terms (``recon``, ``pos``, ``vel``, ``foot``,
+    ``geo``), ``total``. Gradients also reach D's parameters: freeze D (``requires_grad_(False)``) or
+    zero its gradients before its own step.
+    """
+    cfg = generator.config
+    b = x0.shape[0]
+    t = sample_timesteps(b, schedule.num_steps, generator_rng, _rng_device(generator_rng, x0.device)).to(x0.device)
+    _, x_next = q_sample_pairs(schedule, x0, t, generator_rng)
+    drop = condition_dropout(b, cfg.p_uncond, generator_rng, x0.device)
+    x0_hat = generator(x_next, t, _randn((b, cfg.z_dim), x0, generator_rng), cond, lengths, drop_cond=drop)
+    fake_t = schedule.posterior_sample(x0_hat, x_next, t, _randn(x0.shape, x0, generator_rng))
+    adv = g_adversarial_loss(discriminator(fake_t, x_next, t, cond, lengths))
+    geo = geometric_losses(
+        x0_hat, x0, lengths, mean, std, cfg.joints_num, weight=cfg.geometric_weight, lam=cfg.geo_lambda
+    )
+    return {"adv": adv, **{k: v for k, v in geo.items() if k != "total"}, "total": adv + geo["total"]}
+
+
+# --------------------------------------------------------------------------------------------------
+# Sampling
+# --------------------------------------------------------------------------------------------------
+
+
+def guided_x0(
+    generator: EMDMGenerator,
+    x_next: Tensor,
+    t: Tensor | int,
+    z: Tensor,
+    cond: Tensor,
+    lengths: Lengths,
+    guidance: float = 2.5,
+) -> Tensor:
+    """Classifier-free guided prediction (Eq. 13): ``G(null) + s (G(c) - G(null))``, same z for both.
+
+    The two passes run as ONE forward on the doubled batch ``[unconditional; conditional]``;
+    ``guidance == 1`` runs the conditional pass alone.
+    """
+    if guidance == 1.0:
+        return generator(x_next, t, z, cond, lengths)
+    b = x_next.shape[0]
+    steps = _per_sample_steps(t, b, x_next.device)
+    lengths_t = torch.as_tensor(lengths, device=x_next.device)
+    drop = torch.cat([torch.ones(b, dtype=torch.bool), torch.zeros(b, dtype=torch.bool)]).to(x_next.device)
+    out = generator(
+        torch.cat([x_next, x_next]), torch.cat([steps, steps]), torch.cat([z, z]), torch.cat([cond, cond]),
+        torch.cat([lengths_t, lengths_t]), drop_cond=drop,
+    )
+    uncond, conditional = out.chunk(2)
+    return cfg_combine(uncond, conditional, guidance)
+
+
+@torch.no_grad()
+def sample_emdm(
+    generator: EMDMGenerator,
+    schedule: EMDMSchedule,
+    cond: Tensor,
+    lengths: Lengths,
+    guidance: float = 2.5,
+    generator_rng: torch.Generator | None = None,
+    *,
+    num_frames: int | None = None,
+    x_T: Tensor | None = None,
+) -> Tensor:
+    """EMDM sampling (Alg. 1): cond (B, ...) and lengths (B,) -> normalised features (B, N, D).
+
+    ``x_T ~ N(0, I)`` (or ``x_T``), N = ``num_frames`` or ``max(lengths)``; for t = T-1..0 draw a fresh
+    z, ``x0_hat = guided_x0(x_{t+1}, t, z)`` and ``x_t = posterior_sample(x0_hat, x_{t+1}, t)``
+    (Alg. 2); the last step returns x0_hat itself (the posterior at t = 0). Padded frames are 0.
+    Runs G in eval mode (restored afterwards); every draw comes from ``generator_rng`` (deterministic
+    for a seeded generator).
+    """
+    cfg = generator.config
+    device = next(generator.parameters()).device
+    cond = cond.to(device)
+    lengths_t = torch.as_tensor(lengths, device=device)
+    b = lengths_t.shape[0]
+    n = int(lengths_t.max()) if num_frames is None else int(num_frames)
+    valid = _valid_mask(lengths_t, n, device)[..., None]
+    dtype = next(generator.parameters()).dtype
+    ref = torch.empty(0, device=device, dtype=dtype)
+    x = _randn((b, n, cfg.feature_dim), ref, generator_rng) if x_T is None else x_T.to(device, dtype)
+    x = torch.where(valid, x, 0.0)
+    with _eval_mode(generator):
+        for step in reversed(range(schedule.num_steps)):
+            t = torch.full((b,), step, dtype=torch.long, device=device)
+            z = _randn((b, cfg.z_dim), ref, generator_rng)
+            x0_hat = torch.where(valid, guided_x0(generator, x, t, z, cond, lengths_t, guidance), 0.0)
+            if step == 0:
+                return x0_hat
+            x = torch.where(valid, schedule.posterior_sample(x0_hat, x, t, _randn(x.shape, ref, generator_rng)), 0.0)
+    raise AssertionError("unreachable: a schedule has at least one step")
