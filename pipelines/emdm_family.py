@@ -1,0 +1,85 @@
+"""The EMDM family's loader, generator and registry functions (``train_emdm`` outputs).
+
+- :func:`load_emdm`: the trained generator (EMA weights when present), its schedule and loop config.
+- :class:`EMDMGeneratorRow`: EMDM's sampler (Alg. 1) behind the :class:`models.generator.Generator`
+  interface: T steps, a fresh z per step, classifier-free guidance with the unconditional and
+  conditional passes batched into one forward.
+- :func:`emdm_rows`, :func:`emdm_generator`: the registry's entries (``pipelines/registry.py``); the
+  guidance scale is ``sample.emdm_guidance`` (EMDM's text-to-motion setting: 2.5).
+
+NFE counts network evaluations per sample: ``2 T`` with guidance (the two passes run as one batched
+forward, but each sample is evaluated twice, as MLD's rows count it), ``T`` at guidance 1.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+import torch
+
+from models.emdm import EMDMConfig, EMDMGenerator, EMDMSchedule, sample_emdm
+from models.generator import Generator, TextBatch
+from pipelines.checkpoint import load_final_model
+
+if TYPE_CHECKING:  # annotations only: the registry imports this module, not the reverse
+    from pipelines.registry import EvalContext, GenerateOptions
+
+TRAIN_STAGE = "train_emdm"
+
+
+def load_emdm(out_dir: Path, use_ema: bool = True) -> tuple[EMDMGenerator, EMDMSchedule, dict[str, Any]]:
+    """The trained generator of a ``train_emdm`` output folder in eval mode (its EMA weights when
+    present and ``use_ema``), its few-step schedule and its loop config."""
+    payload = load_final_model(out_dir)
+    config = payload["config"]
+    model = EMDMConfig(**config["model"])
+    generator = EMDMGenerator(model)
+    weights = payload["ema"].get("generator") if use_ema else None
+    generator.load_state_dict(weights or payload["models"]["generator"])
+    return generator.eval(), model.make_schedule(), config
+
+
+class EMDMGeneratorRow:
+    """EMDM: ``T`` denoising-GAN steps from ``x_T ~ N(0, I)``, guided on x0 (Eq. 13), text-conditioned."""
+
+    stochastic = True
+
+    def __init__(self, name: str, generator: EMDMGenerator, schedule: EMDMSchedule, guidance: float) -> None:
+        if generator.config.condition != "text":
+            raise ValueError(f"{name}: the generator is conditioned on {generator.config.condition!r}, "
+                             "the evaluation rows on text")
+        self.name, self.generator, self.schedule = name, generator.eval(), schedule
+        self.guidance = float(guidance)
+        self.nfe = schedule.num_steps * (2 if self.guidance != 1.0 else 1)
+
+    @torch.inference_mode()
+    def sample(self, text: TextBatch, lengths: np.ndarray, seed: int) -> np.ndarray:
+        rng = torch.Generator().manual_seed(seed)
+        cond = torch.from_numpy(np.asarray(text.pooled, np.float32))
+        out = sample_emdm(self.generator, self.schedule, cond, torch.as_tensor(np.asarray(lengths, np.int64)),
+                          self.guidance, rng)
+        return out.float().cpu().numpy()
+
+
+def _emdm(ctx: EvalContext, guidance: float) -> EMDMGeneratorRow:
+    generator, schedule, _ = load_emdm(ctx.trained(TRAIN_STAGE))
+    return EMDMGeneratorRow(f"EMDM-{schedule.num_steps}", generator, schedule, guidance)
+
+
+def emdm_rows(ctx: EvalContext) -> list[Generator]:
+    """EMDM with the T steps it was trained with (``EMDM-10``) and ``sample.emdm_guidance``."""
+    return [_emdm(ctx, ctx.params["sample"]["emdm_guidance"])]
+
+
+def emdm_generator(ctx: EvalContext, options: GenerateOptions) -> Generator:
+    """``stages.generate --model emdm``: the trained T steps (``--steps`` must equal it) and the
+    configured guidance unless told otherwise."""
+    guidance = ctx.params["sample"]["emdm_guidance"] if options.guidance is None else options.guidance
+    row = _emdm(ctx, guidance)
+    trained = row.schedule.num_steps
+    if options.steps is not None and options.steps != trained:
+        raise ValueError(f"--steps {options.steps}: EMDM samples with the {trained} steps it was trained with "
+                         "(train_emdm.num_steps)")
+    return row

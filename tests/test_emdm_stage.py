@@ -1,0 +1,230 @@
+"""EMDM's training stage and evaluation rows on a tiny store: params checks, one GAN step, a Ray Train
+run resumed exactly (both models, both optimisers, the EMA), the stage's outputs and the row generator.
+
+Model sizes and step counts are minimal: this checks wiring, exact resume and the generator
+interface (values, determinism, padding), not model quality.
+"""
+
+from __future__ import annotations
+
+import copy
+import json
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+import torch
+
+from models.generator import Generator, TextBatch
+from pipelines import checkpoint as ckpt
+from pipelines.emdm_family import EMDMGeneratorRow, emdm_generator, emdm_rows, load_emdm
+from pipelines.registry import EvalContext, GenerateOptions
+from pipelines.runner import StepContext, run_training
+from pipelines.stage import loop_config, train
+from stages import train_emdm
+
+pytestmark = pytest.mark.usefixtures("one_thread")  # tiny networks (tests/conftest.py)
+
+FIXTURES = Path(__file__).parent / "fixtures" / "humanml3d"
+TINY_MODEL = {"width": 16, "layers": 1, "heads": 2, "ff_dim": 32, "dropout": 0.0, "activation": "selu",
+              "norm_first": False, "z_dim": 4, "mapping_layers": 2, "d_width": 16, "d_layers": 1, "d_heads": 2,
+              "d_ff_dim": 16, "d_time_dim": 8}
+LOOP = {"seed": 0, "batch_size": 8, "max_steps": 6, "grad_clip": 1.0, "lr_schedule": "constant", "warmup_steps": 0,
+        "min_lr_ratio": 0.0, "log_every": 3, "num_data_workers": 0, "length_buckets": 0}
+
+
+def emdm_section(**overrides: Any) -> dict[str, Any]:
+    """A tiny ``train_emdm`` params section (R1 every 2 steps, so short runs regularise)."""
+    section = {"condition": "text", "num_steps": 10, "lr_g": 2e-4, "lr_d": 1e-3, "ema_decay": 0.9,
+               "geometric_weight": None, "geometric_lambda": 1.0, "r1_gamma": 0.02, "r1_interval": 2,
+               "p_uncond": 0.1, "crop_frames": 64, "model": dict(TINY_MODEL), "loop": dict(LOOP)}
+    return section | overrides
+
+
+@pytest.fixture(scope="module")
+def params(small_store) -> dict[str, Any]:
+    params = copy.deepcopy(small_store)
+    params["train_emdm"] = emdm_section()
+    params["sample"]["emdm_guidance"] = 2.5
+    params["ray"].update(num_workers=1, cpus_per_worker=1, checkpoint_every=3, max_failures=0)
+    return params
+
+
+# --------------------------------------------------------------------------------------------------
+# Params (no store needed: the section is checked before the store is opened)
+# --------------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(("change", "key"), [
+    ({"condition": "audio"}, "train_emdm.condition"),
+    ({"condition": "action"}, "train_emdm.condition"),
+    ({"lr_d": 0.0}, "train_emdm.lr_d"),
+    ({"r1_interval": 1.5}, "train_emdm.r1_interval"),
+    ({"p_uncond": 1.5}, "train_emdm.p_uncond"),
+    ({"geometric_weight": "big"}, "train_emdm.geometric_weight"),
+    ({"ema_decay": True}, "train_emdm.ema_decay"),
+    ({"model": TINY_MODEL | {"depth": 3}}, "train_emdm.model"),
+    ({"model": {k: v for k, v in TINY_MODEL.items() if k != "z_dim"}}, "train_emdm.model"),
+    ({"lr": 1e-4}, "train_emdm: unknown key"),
+])
+def test_bad_params_name_the_key(change: dict[str, Any], key: str, tmp_path: Path) -> None:
+    params = {"train_emdm": emdm_section(**change), "features": {"out": str(tmp_path / "no_store")},
+              "paths": {"artifacts": str(tmp_path), "ray_storage": str(tmp_path)}, "ray": {}}
+    with pytest.raises(ValueError, match=key.replace(".", r"\.")):
+        loop_config(train_emdm.STAGE, params)
+
+
+def test_more_than_one_worker_is_refused(tmp_path: Path) -> None:
+    params = {"train_emdm": emdm_section(), "features": {"out": str(tmp_path / "no_store")},
+              "ray": {"num_workers": 2}}
+    with pytest.raises(ValueError, match=r"ray\.num_workers: train_emdm trains on one worker"):
+        train_emdm.stage_config(params)
+
+
+def test_a_good_section_reaches_the_store(tmp_path: Path) -> None:
+    params = {"train_emdm": emdm_section(), "features": {"out": str(tmp_path / "no_store")}, "ray": {}}
+    with pytest.raises(FileNotFoundError, match="no feature store"):
+        train_emdm.stage_config(params)
+
+
+# --------------------------------------------------------------------------------------------------
+# One GAN step (no runner)
+# --------------------------------------------------------------------------------------------------
+
+
+def _batch() -> dict[str, torch.Tensor]:
+    feats = np.load(FIXTURES / "new_joint_vecs_012314.npy")
+    mean, std = np.load(FIXTURES / "Mean.npy"), np.load(FIXTURES / "Std.npy")
+    x = torch.tensor((np.stack([feats[0:16], feats[30:46], feats[60:76]]) - mean) / std, dtype=torch.float32)
+    lengths = torch.tensor([16, 12, 9])
+    x = torch.where(torch.arange(16)[None, :, None] < lengths[:, None, None], x, 0.0)
+    text = torch.nn.functional.normalize(torch.randn(3, 8, generator=torch.Generator().manual_seed(0)), dim=1)
+    return {"motion": x, "length": lengths, "text": text}
+
+
+def test_one_gan_step_updates_both_networks_and_r1_only_when_due() -> None:
+    torch.manual_seed(0)
+    mean, std = np.load(FIXTURES / "Mean.npy"), np.load(FIXTURES / "Std.npy")
+    section = emdm_section(r1_interval=3)
+    config = {"mean": mean.tolist(), "std": std.tolist(), "lr_g": 1e-3, "lr_d": 1e-3, "ema_decay": 0.9,
+              "model": train_emdm.model_config(section, 263, 8)}
+    assert config["model"]["geo_weight"] is None and "guidance" not in config["model"]
+    comps = train_emdm.build(config)
+    assert set(comps.models) == {"generator", "discriminator"} and set(comps.optimizers) == {"g", "d"}
+    assert all(opt.defaults["betas"] == (0.5, 0.9) for opt in comps.optimizers.values())
+    assert comps.ema == {"generator": 0.9} and comps.frozen["schedule"].num_steps == 10
+    ctx = StepContext(config, comps.models, comps.optimizers, {}, comps.frozen, torch.device("cpu"), 0, 1, 1.0)
+    before = {name: {k: p.detach().clone() for k, p in m.named_parameters()} for name, m in comps.models.items()}
+    batch = _batch()
+    first = train_emdm.step(batch, ctx)  # step 0: R1 due
+    assert {"loss", "g_adv", "geo", "recon", "pos", "vel", "foot", "d_loss", "d_real", "d_fake", "r1"} == set(first)
+    assert all(torch.isfinite(v) and v.ndim == 0 and not v.requires_grad for v in first.values())
+    assert first["r1"] > 0 and first["loss"] > 100 * first["geo"] - 1e-3  # R = 100 for text, plus adv > 0
+    assert {"grad_norm/g", "grad_norm/d"} == set(ctx.extra_metrics)
+    for name, model in comps.models.items():  # both optimisers stepped every tensor
+        changed = [k for k, p in model.named_parameters() if not torch.equal(before[name][k], p.detach())]
+        assert set(before[name]) - set(changed) <= {"null_cond"}, name  # null_cond: only if a caption was dropped
+        assert all(p.requires_grad for p in model.parameters())  # D unfrozen again after the G update
+    ctx.step = 1
+    assert "r1" not in train_emdm.step(batch, ctx)
+    ctx.step = 3
+    assert "r1" in train_emdm.step(batch, ctx)
+    ctx.world_size = 2
+    with pytest.raises(NotImplementedError, match="one worker"):
+        train_emdm.step(batch, ctx)
+
+
+# --------------------------------------------------------------------------------------------------
+# Through the runner
+# --------------------------------------------------------------------------------------------------
+
+
+def _assert_same(a: Any, b: Any, where: str) -> None:
+    """Nested state dicts equal exactly (tensors bit for bit)."""
+    if isinstance(a, torch.Tensor):
+        assert isinstance(b, torch.Tensor) and a.dtype == b.dtype and torch.equal(a, b), where
+    elif isinstance(a, dict):
+        assert isinstance(b, dict) and a.keys() == b.keys(), where
+        for key in a:
+            _assert_same(a[key], b[key], f"{where}.{key}")
+    elif isinstance(a, list | tuple):
+        assert isinstance(b, list | tuple) and len(a) == len(b), where
+        for k, (x, y) in enumerate(zip(a, b, strict=True)):
+            _assert_same(x, y, f"{where}[{k}]")
+    else:
+        assert a == b, where
+
+
+def _final_state(run_path: str) -> dict[str, Any]:
+    latest = sorted(p for p in Path(run_path).glob("checkpoint_*") if p.is_dir())[-1]
+    return ckpt.load_state(latest)
+
+
+@pytest.mark.slow
+def test_gan_step_through_ray_resumes_exactly(params, ray_cluster, tmp_path: Path) -> None:
+    """3 steps resumed to 6 equal 6 straight: G, D, both Adam states, both schedulers, the EMA and the
+    logged losses (R1 on steps 0, 2, 4 included)."""
+    config = loop_config(train_emdm.STAGE, params)
+    assert config["model"]["text_dim"] == 384 and config["model"]["r1_interval"] == 2
+    storage = str(tmp_path / "ray")
+    straight = run_training("emdm", train_emdm.STAGE.spec, config | {"max_steps": 6}, params["ray"],
+                            tmp_path / "straight", storage)
+    run_training("emdm", train_emdm.STAGE.spec, config | {"max_steps": 3}, params["ray"], tmp_path / "part", storage,
+                 run_name="emdm-resumed")
+    resumed = run_training("emdm", train_emdm.STAGE.spec, config | {"max_steps": 6}, params["ray"],
+                           tmp_path / "resumed", storage, run_name="emdm-resumed")
+    assert straight.attempts == [0] and resumed.attempts == [0, 3]
+    a, b = _final_state(straight.run_path), _final_state(resumed.run_path)
+    assert a["step"] == b["step"] == 6
+    assert set(a["models"]) == {"generator", "discriminator"} and set(a["optimizers"]) == {"g", "d"}
+    assert set(a["ema"]) == {"generator"} and set(a["schedulers"]) == {"g", "d"}
+    for part in ("models", "optimizers", "schedulers", "ema"):
+        _assert_same(a[part], b[part], part)
+    assert all(a["optimizers"][name]["state"] for name in ("g", "d"))
+    assert not torch.equal(a["ema"]["generator"]["module"]["frame_out.weight"],
+                           a["models"]["generator"]["frame_out.weight"])
+    assert [row["step"] for row in straight.history] == [3, 6]
+    for x, y in zip(straight.history, resumed.history, strict=True):
+        for key in ("loss", "d_loss", "r1", "geo", "g_adv"):
+            assert x[key] == y[key] and np.isfinite(x[key]), key
+        assert x["r1"] > 0
+
+
+@pytest.mark.slow
+def test_stage_writes_outputs_and_the_row_samples(params, tmp_path: Path) -> None:
+    local = copy.deepcopy(params)
+    local["ray"]["num_workers"] = 0
+    result = train(train_emdm.STAGE, local)
+    out = Path(local["paths"]["artifacts"]) / "train_emdm"
+    assert result.out_dir.resolve() == out.resolve() and (out / "model.pt").is_file()
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["step"] == 6
+    assert all(np.isfinite(metrics[k]) for k in ("loss", "d_loss", "d_real", "d_fake", "geo", "g_adv", "r1"))
+    payload = ckpt.load_final_model(out)
+    generator, schedule, config = load_emdm(out)
+    assert schedule.num_steps == 10 and config["model"]["condition"] == "text" and not generator.training
+    for key, value in generator.state_dict().items():  # the EMA weights
+        assert torch.equal(value, payload["ema"]["generator"][key]), key
+
+    ctx = EvalContext(local, Path(local["paths"]["artifacts"]), Path(local["features"]["out"]))
+    [row] = emdm_rows(ctx)
+    assert isinstance(row, Generator) and isinstance(row, EMDMGeneratorRow)
+    assert row.name == "EMDM-10" and row.nfe == 20 and row.stochastic and row.guidance == 2.5
+    rng = np.random.default_rng(0)
+    pooled = rng.standard_normal((3, 384)).astype(np.float32)
+    text = TextBatch(["a", "b", "c"], pooled / np.linalg.norm(pooled, axis=1, keepdims=True),
+                     [np.zeros((2, 384), np.float32)] * 3)
+    lengths = np.array([40, 24, 32])
+    x, y, z = row.sample(text, lengths, 1), row.sample(text, lengths, 1), row.sample(text, lengths, 2)
+    assert x.shape == (3, 40, 263) and x.dtype == np.float32 and np.isfinite(x).all()
+    np.testing.assert_array_equal(x, y)
+    assert not np.allclose(x, z)
+    assert not x[1, 24:].any() and not x[2, 32:].any() and np.abs(x[1, :24]).sum() > 0
+    assert row.sample(text.select([1]), lengths[1:2], 1).shape == (1, 24, 263)
+
+    plain = emdm_generator(ctx, GenerateOptions(guidance=1.0))
+    assert plain.nfe == 10 and plain.name == "EMDM-10"
+    assert emdm_generator(ctx, GenerateOptions(steps=10)).guidance == 2.5
+    with pytest.raises(ValueError, match="EMDM samples with the 10 steps"):
+        emdm_generator(ctx, GenerateOptions(steps=4))
