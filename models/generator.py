@@ -1,7 +1,8 @@
 """The one sampling interface every motion generator implements (DESIGN.md, "Models").
 
 ``evaluate`` and the user CLI only ever talk to a :class:`Generator`: texts (with their frozen
-text-encoder embeddings) and lengths in, dataset-normalised features out.
+text-encoder embeddings) and lengths in, dataset-normalised features out. A
+:class:`ControlledGenerator` also takes a :class:`Hint` (target joint positions on some frames).
 """
 
 from __future__ import annotations
@@ -62,6 +63,54 @@ class Generator(Protocol):
             frames at or past ``lengths[b]`` are zero. The same ``seed`` gives the same output.
         """
         ...
+
+
+@dataclass(frozen=True)
+class Hint:
+    """Target global joint positions for trajectory control (``data/control.py``).
+
+    Attributes:
+        joints: (B, T, J, 3) float32 positions in metres; only entries under ``mask`` matter.
+        mask: (B, T, J) bool, True at the controlled (frame, joint) entries (never on padded frames).
+    """
+
+    joints: np.ndarray
+    mask: np.ndarray
+
+    def __post_init__(self) -> None:
+        if self.joints.ndim != 4 or self.joints.shape[-1] != 3 or self.mask.shape != self.joints.shape[:-1]:
+            raise ValueError(f"Hint: joints {self.joints.shape} must be (B, T, J, 3) and mask {self.mask.shape} "
+                             "(B, T, J)")
+        if self.mask.dtype != np.bool_:
+            raise ValueError(f"Hint: mask must be boolean, got {self.mask.dtype}")
+        if not np.isfinite(self.joints[self.mask]).all():
+            raise ValueError("Hint: controlled joint positions contain NaN or inf")
+
+    def select(self, index: np.ndarray | list[int]) -> Hint:
+        """The sub-batch at ``index`` (in that order)."""
+        return Hint(self.joints[list(index)], self.mask[list(index)])
+
+
+@dataclass(frozen=True)
+class ControlSpec:
+    """How an evaluation row is controlled: ``density`` (``data.control.TEST_DENSITIES``) on ``joints`` (ids)."""
+
+    density: str
+    joints: tuple[int, ...] = (0,)
+
+
+@runtime_checkable
+class ControlledGenerator(Protocol):
+    """A :class:`Generator` whose ``sample`` also takes a :class:`Hint`; ``control`` says which hints
+    the evaluation gives it (a row scored against hints it ignores, such as an uncontrolled reference,
+    is one too)."""
+
+    name: str
+    nfe: int
+    stochastic: bool
+    control: ControlSpec
+
+    def sample(self, text: TextBatch, lengths: np.ndarray, seed: int, hint: Hint) -> np.ndarray: ...
 
 
 @runtime_checkable

@@ -125,6 +125,38 @@ def lcm_distillation_loss(
 
 
 @torch.no_grad()
+def motionlcm_latents(
+    student: MLDDenoiser,
+    schedule: NoiseSchedule,
+    text_emb: Tensor,
+    num_steps: int = 1,
+    w: float = 2.5,
+    generator: torch.Generator | None = None,
+    *,
+    timesteps: Sequence[int] | None = None,
+    text_tokens: Tensor | None = None,
+    text_mask: Tensor | None = None,
+) -> Tensor:
+    """MotionLCM's diffusion-space latents z0 (B, L, C) for text_emb (B, E); see :func:`sample_motionlcm`."""
+    cfg = student.config
+    if timesteps is None:
+        if num_steps not in TIMESTEPS:
+            raise ValueError(f"MotionLCM samples with {sorted(TIMESTEPS)} steps (or explicit timesteps), "
+                             f"got {num_steps}")
+        timesteps = TIMESTEPS[num_steps]
+    b = text_emb.shape[0]
+    shape = (b, cfg.latent_tokens, cfg.latent_dim)
+    cond = {"text_emb": text_emb, "time_cond": guidance_embedding(torch.full((b,), float(w), device=text_emb.device))}
+    if cfg.word_tokens != "none":
+        if text_tokens is None or text_mask is None:
+            raise ValueError(f"this student has word_tokens={cfg.word_tokens!r}: pass text_tokens and text_mask")
+        cond |= {"text_tokens": text_tokens, "text_mask": text_mask.bool()}
+    with _eval_mode(student):
+        return lcm_multistep_sample(student, shape, schedule, generator=generator, cond=cond,
+                                    timesteps=timesteps, prediction_type=cfg.prediction_type, device=text_emb.device)
+
+
+@torch.no_grad()
 def sample_motionlcm(
     student: MLDDenoiser,
     vae: MotionVAE,
@@ -143,22 +175,9 @@ def sample_motionlcm(
 
     ``z_T ~ N(0, I)`` from ``generator``; LCM multistep sampling over :data:`TIMESTEPS`\\[num_steps]
     (or ``timesteps``) with the embedded guidance ``w`` (the classifier-free scale minus one), one
-    student pass per step; then ``vae.decode_by_length(latent_scale * z0, lengths)``.
+    student pass per step (:func:`motionlcm_latents`); then ``vae.decode_by_length(latent_scale * z0, lengths)``.
     """
-    cfg = student.config
-    if timesteps is None:
-        if num_steps not in TIMESTEPS:
-            raise ValueError(f"MotionLCM samples with {sorted(TIMESTEPS)} steps (or explicit timesteps), "
-                             f"got {num_steps}")
-        timesteps = TIMESTEPS[num_steps]
-    b = text_emb.shape[0]
-    shape = (b, cfg.latent_tokens, cfg.latent_dim)
-    cond = {"text_emb": text_emb, "time_cond": guidance_embedding(torch.full((b,), float(w), device=text_emb.device))}
-    if cfg.word_tokens != "none":
-        if text_tokens is None or text_mask is None:
-            raise ValueError(f"this student has word_tokens={cfg.word_tokens!r}: pass text_tokens and text_mask")
-        cond |= {"text_tokens": text_tokens, "text_mask": text_mask.bool()}
-    with _eval_mode(student, vae):
-        z0 = lcm_multistep_sample(student, shape, schedule, generator=generator, cond=cond,
-                                  timesteps=timesteps, prediction_type=cfg.prediction_type, device=text_emb.device)
-        return vae.decode_by_length(z0 * cfg.latent_scale, lengths)
+    z0 = motionlcm_latents(student, schedule, text_emb, num_steps, w, generator, timesteps=timesteps,
+                           text_tokens=text_tokens, text_mask=text_mask)
+    with _eval_mode(vae):
+        return vae.decode_by_length(z0 * student.config.latent_scale, lengths)

@@ -19,6 +19,13 @@ family's stage loads them. Each row draws its Diversity and MultiModality pairs 
 random stream (:func:`row_rng`), so its metrics do not depend on the rows evaluated beside it.
 AITS (seconds per sentence, batch 1, warm, loading excluded) and ms per frame are timed once
 per generator on ``timing_sentences`` test captions.
+
+Controlled rows (:class:`~models.generator.ControlledGenerator`) answer the same captions and lengths
+with hints taken from the real crops' own global joints (:func:`control_hint`: the row's joints on
+random frames at the row's density); their motions are also scored by the control errors
+(``traj_err_*``, ``loc_err_*``, ``avg_err_m``) on the controlled entries. The frames are drawn from a
+stream seeded by the density, so every row of one density (a ControlNet and the uncontrolled
+reference scored against its hints) is judged on the same keyframes.
 """
 
 from __future__ import annotations
@@ -32,6 +39,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from data.control import evaluation_mask
 from data.features import recover_from_ric
 from data.motion_dataset import pad_motions
 from data.skeleton import Skeleton
@@ -39,7 +47,7 @@ from data.store import StoredItem
 from data.vocab import WordVocab
 from models import metrics as M
 from models.evaluator import EvaluatorConfig, T2MEvaluator
-from models.generator import Generator, Reconstructor, TextBatch
+from models.generator import ControlledGenerator, ControlSpec, Generator, Hint, Reconstructor, TextBatch
 from pipelines.checkpoint import load_final_model
 
 REAL = "Real"
@@ -178,25 +186,39 @@ def denormalise(features: np.ndarray, mean: np.ndarray, std: np.ndarray) -> np.n
     return features * std + mean
 
 
+def control_hint(d: Draw, spec: ControlSpec, cfg: EvalConfig, r: int, joints_num: int) -> Hint:
+    """Hints for replication ``r``'s draw: the crops' global joints on ``spec``'s joints and random frames."""
+    joints = recover_from_ric(d.real, joints_num).astype(np.float32)
+    rng = np.random.default_rng([cfg.seed, r, zlib.crc32(f"control {spec.density}".encode())])
+    return Hint(joints, evaluation_mask(d.lengths, joints.shape[1], joints_num, spec.joints, spec.density, rng))
+
+
+def sample_rows(gen: Generator, text: TextBatch, lengths: np.ndarray, seed: int, hint: Hint | None,
+                index: np.ndarray | list[int]) -> np.ndarray:
+    """``gen`` on the rows ``index`` of a batch (with their hints for a controlled generator)."""
+    if hint is None:
+        return gen.sample(text.select(index), lengths[index], seed=seed)
+    return gen.sample(text.select(index), lengths[index], seed=seed, hint=hint.select(index))  # type: ignore[call-arg]
+
+
 def multimodality(gen: Generator, d: Draw, embedder: MotionEmbedder, mean: np.ndarray, std: np.ndarray,
-                  cfg: EvalConfig, seed: int, rng: np.random.Generator) -> float:
+                  cfg: EvalConfig, seed: int, rng: np.random.Generator, hint: Hint | None = None) -> float:
     """MultiModality of ``gen`` on the first ``mm_texts`` captions of a draw."""
     index = np.arange(min(cfg.mm_texts, len(d.lengths)))
-    text, lengths = d.text.select(index), d.lengths[index]
     emb = []
     for r in range(cfg.mm_repeats):
-        raw = denormalise(gen.sample(text, lengths, seed=seed * 1000 + r), mean, std)
-        emb.append(embedder.motions(raw, lengths))
+        raw = denormalise(sample_rows(gen, d.text, d.lengths, seed * 1000 + r, hint, index), mean, std)
+        emb.append(embedder.motions(raw, d.lengths[index]))
     return M.multimodality(np.stack(emb, axis=1), cfg.mm_times, rng)
 
 
-def time_generator(gen: Generator, d: Draw, n: int) -> dict[str, float]:
+def time_generator(gen: Generator, d: Draw, n: int, hint: Hint | None = None) -> dict[str, float]:
     """AITS (s per sentence, batch 1, warm) and ms per generated frame over ``n`` captions."""
-    gen.sample(d.text.select([0]), d.lengths[:1], seed=0)  # warm-up
+    sample_rows(gen, d.text, d.lengths, 0, hint, [0])  # warm-up
     seconds, frames = [], []
     for k in range(min(n, len(d.lengths))):
         start = time.perf_counter()
-        gen.sample(d.text.select([k]), d.lengths[k : k + 1], seed=k)
+        sample_rows(gen, d.text, d.lengths, k, hint, [k])
         seconds.append(time.perf_counter() - start)
         frames.append(int(d.lengths[k]))
     return {"AITS_s": float(np.mean(seconds)), "ms_per_frame": 1000.0 * float(np.sum(seconds)) / float(np.sum(frames))}
@@ -288,11 +310,19 @@ def replicate(ref: Reference, r: int, embedder: MotionEmbedder, skeleton: Skelet
         result[rec.name]["MPJPE_mm"] = mpjpe_mm(d.real, raw, d.lengths, skeleton.joints_num)
     for gen in generators:
         rng = row_rng(cfg, r, gen.name)
-        raw = denormalise(gen.sample(d.text, d.lengths, seed=r), mean, std)
+        hint = _hint_of(gen, d, cfg, r, skeleton)
+        raw = denormalise(sample_rows(gen, d.text, d.lengths, r, hint, np.arange(len(d.lengths))), mean, std)
         result[gen.name] = _row_metrics(gen.name, raw, ref, embedder, skeleton, cfg, rng)
+        if hint is not None:
+            joints = recover_from_ric(raw, skeleton.joints_num)
+            result[gen.name] |= M.control_errors(joints, hint.joints, hint.mask)
         if gen.stochastic and cfg.mm_repeats > cfg.mm_times:
-            result[gen.name]["MultiModality"] = multimodality(gen, d, embedder, mean, std, cfg, r, rng)
+            result[gen.name]["MultiModality"] = multimodality(gen, d, embedder, mean, std, cfg, r, rng, hint)
     return result
+
+
+def _hint_of(gen: Generator, d: Draw, cfg: EvalConfig, r: int, skeleton: Skeleton) -> Hint | None:
+    return control_hint(d, gen.control, cfg, r, skeleton.joints_num) if isinstance(gen, ControlledGenerator) else None
 
 
 def aggregate(per_replication: Sequence[Mapping[str, Mapping[str, float]]]) -> dict[str, dict[str, float]]:
@@ -316,6 +346,7 @@ def evaluate(refs: Sequence[Reference], items: Sequence[StoredItem], mean: np.nd
     table = aggregate(reps) if reps and reps[0] else {}
     timing_draw = draw(items, np.random.default_rng([cfg.seed, cfg.replications]), cfg.unit_length)
     for gen in generators:
-        table[gen.name].update(time_generator(gen, timing_draw, cfg.timing_sentences))
+        hint = _hint_of(gen, timing_draw, cfg, cfg.replications, skeleton)
+        table[gen.name].update(time_generator(gen, timing_draw, cfg.timing_sentences, hint))
         table[gen.name]["NFE"] = gen.nfe
     return table

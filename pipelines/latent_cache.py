@@ -6,7 +6,8 @@ same distribution as encoding every batch, without a VAE pass per step. Items lo
 motion dataset's ``crop_frames`` are encoded over their first ``crop_frames`` frames (the motion
 loader would draw a random window).
 
-Used by ``train_mld`` and by every stage that trains in MLD's latent space.
+Used by ``train_mld`` and by every stage that trains in MLD's latent space;
+:class:`ControlLatentDataset` adds each window's global joints for ``train_controlnet``.
 """
 
 from __future__ import annotations
@@ -17,6 +18,7 @@ import numpy as np
 import torch
 from torch.utils.data import Dataset, default_collate
 
+from data.features import recover_from_ric
 from data.motion_dataset import MotionTextDataset, pad_tokens
 from models.mld import latent_std
 from models.vae import LatentDistribution, MotionVAE
@@ -59,6 +61,29 @@ class LatentTextDataset(Dataset):
         return out
 
 
+class ControlLatentDataset(LatentTextDataset):
+    """:class:`LatentTextDataset` plus each encoded window's global joints and length (the hint source).
+
+    Extra elements: ``joints`` (P, J, 3) float32 global positions in metres recovered from the
+    window's features (zero past the length; P = ``crop_frames``), ``length`` int64.
+    """
+
+    def __init__(self, motions: MotionTextDataset, vae: MotionVAE, batch_size: int = 64, word_tokens: int = 0) -> None:
+        super().__init__(motions, vae, batch_size, word_tokens)
+        joints_num = (motions.mean.shape[0] + 1) // 12
+        self.joints, self.lengths = [], []
+        for k in range(len(motions)):
+            window, length = motions.window(k)
+            joints = np.zeros((motions.max_frames, joints_num, 3), np.float32)
+            joints[:length] = recover_from_ric(window[:length] * motions.std + motions.mean, joints_num)
+            self.joints.append(torch.from_numpy(joints))
+            self.lengths.append(length)
+
+    def __getitem__(self, index: int) -> dict[str, torch.Tensor]:
+        return super().__getitem__(index) | {"joints": self.joints[index],
+                                            "length": torch.tensor(self.lengths[index])}
+
+
 def collate_words(items: list[dict[str, torch.Tensor]]) -> dict[str, torch.Tensor]:
     """Stack items and cut ``tokens`` (B, N, H) / ``token_mask`` (B, N) to the longest caption (padding only)."""
     batch = default_collate(items)
@@ -74,9 +99,20 @@ def measure_latent_std(data: LatentTextDataset, seed: int = 0) -> float:
     return latent_std(z)
 
 
+def _cache_args(config: dict) -> tuple[MotionTextDataset, MotionVAE, int]:
+    motions = MotionTextDataset(config["features_dir"], "train", config["mean"], config["std"], config["crop_frames"])
+    words = config["max_text_tokens"] if config["model"].get("word_tokens", "none") != "none" else 0
+    return motions, load_vae(Path(config["vae_dir"])), words
+
+
 def latent_dataset(config: dict) -> LatentTextDataset:
     """The latent cache of a loop config with ``features_dir``, ``mean``, ``std``, ``crop_frames``, ``vae_dir``,
     ``max_text_tokens`` and the denoiser's ``model.word_tokens`` (word tokens are served unless "none")."""
-    motions = MotionTextDataset(config["features_dir"], "train", config["mean"], config["std"], config["crop_frames"])
-    words = config["max_text_tokens"] if config["model"].get("word_tokens", "none") != "none" else 0
-    return LatentTextDataset(motions, load_vae(Path(config["vae_dir"])), word_tokens=words)
+    motions, vae, words = _cache_args(config)
+    return LatentTextDataset(motions, vae, word_tokens=words)
+
+
+def control_dataset(config: dict) -> ControlLatentDataset:
+    """:func:`latent_dataset` with the windows' global joints (``train_controlnet``)."""
+    motions, vae, words = _cache_args(config)
+    return ControlLatentDataset(motions, vae, word_tokens=words)

@@ -66,7 +66,7 @@ def load_mld(out_dir: Path, use_ema: bool = True) -> tuple[MLDDenoiser, NoiseSch
     return denoiser.eval(), noise_schedule(config), config
 
 
-def _word_tokens(denoiser: MLDDenoiser, text: TextBatch) -> dict[str, torch.Tensor]:
+def word_tokens(denoiser: MLDDenoiser, text: TextBatch) -> dict[str, torch.Tensor]:
     """The prompts' padded word tokens and mask for a ``word_tokens`` denoiser, else nothing."""
     if denoiser.config.word_tokens == "none":
         return {}
@@ -88,7 +88,7 @@ class MLDGenerator:
     @torch.inference_mode()
     def sample(self, text: TextBatch, lengths: np.ndarray, seed: int) -> np.ndarray:
         generator = torch.Generator().manual_seed(seed)
-        words = _word_tokens(self.denoiser, text)
+        words = word_tokens(self.denoiser, text)
         out = sample_mld(self.denoiser, self.vae, self.schedule, torch.from_numpy(text.pooled.astype(np.float32)),
                          torch.as_tensor(lengths), self.num_steps, self.guidance, generator, **words)
         return out.numpy()
@@ -107,7 +107,7 @@ class MotionLCMGenerator:
 
     @torch.inference_mode()
     def sample(self, text: TextBatch, lengths: np.ndarray, seed: int) -> np.ndarray:
-        words = _word_tokens(self.student, text)
+        words = word_tokens(self.student, text)
         out = sample_motionlcm(self.student, self.vae, self.schedule, torch.from_numpy(text.pooled.astype(np.float32)),
                                torch.as_tensor(lengths), self.num_steps, self.w,
                                torch.Generator().manual_seed(seed), **words)

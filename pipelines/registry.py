@@ -50,6 +50,7 @@ class GenerateOptions:
 
     steps: int | None = None
     guidance: float | None = None
+    refine: bool = False
 
 
 @dataclass(frozen=True)
@@ -97,6 +98,12 @@ FAMILIES: dict[str, ModelFamily] = {family.name: family for family in (
     ModelFamily("motionlcm", "pipelines.mld_family", "motionlcm_rows",
                 train_stages=("train_vae", "train_mld", "distill_lcm"), params=("sample.motionlcm_guidance",),
                 generator="motionlcm_generator", description="MotionLCM: the MLD teacher distilled, 1-4 steps"),
+    ModelFamily("motionlcm-control", "pipelines.controlnet_family", "controlnet_rows",
+                train_stages=("train_vae", "train_mld", "distill_lcm", "train_controlnet"),
+                params=("sample.motionlcm_guidance", "sample.control_refine_steps", "sample.control_refine_lr",
+                        "sample.control_refine_realism"),
+                generator="controlnet_generator",
+                description="MotionLCM's ControlNet: one step, following a pelvis trajectory"),
 )}
 
 

@@ -13,7 +13,7 @@ import pytest
 from data.motion_dataset import pad_motions
 from data.skeleton import HUMANML3D
 from data.store import StoredItem
-from models.generator import Generator, TextBatch
+from models.generator import ControlledGenerator, ControlSpec, Generator, Hint, TextBatch
 from pipelines import evaluation
 from pipelines.baselines import RandomMotion, Retrieval
 from pipelines.evaluation import (
@@ -231,3 +231,43 @@ def test_mpjpe_is_root_aligned_and_in_millimetres():
     bent = real.copy()
     bent[..., 4:7] += 0.01  # joint 1 shifted by 1 cm in every valid frame (RIC positions)
     assert mpjpe_mm(real, bent, lengths, 22) == pytest.approx(10 * np.sqrt(3) / 22, rel=1e-3)  # 1 of 22 joints
+
+
+class DriftingController:
+    """A controlled generator whose pelvis drifts ``speed`` m/frame along x from the origin: against the
+    world's motions (pelvis still at the origin) its error on frame t is exactly ``speed * t``."""
+
+    nfe, stochastic = 1, False
+
+    def __init__(self, name: str, speed: float, density: str) -> None:
+        self.name, self.speed, self.control, self.hints = name, speed, ControlSpec(density), []
+
+    def sample(self, text: TextBatch, lengths: np.ndarray, seed: int, hint: Hint) -> np.ndarray:
+        self.hints.append(hint)
+        out = np.zeros((len(lengths), int(lengths.max()), D), np.float32)
+        for b, n in enumerate(lengths):
+            out[b, :n, 3] = 0.9
+            out[b, :n, 1] = self.speed  # root x velocity in the (unturned) facing frame
+        return out
+
+
+def test_controlled_rows_are_scored_on_their_hints_keyframes(world):
+    codes, test, _ = world
+    mean, std = np.zeros(D, np.float32), np.ones(D, np.float32)
+    embedder = StubEmbedder(codes)
+    refs = references(test, embedder, CFG)
+    still, drifting = DriftingController("Still", 0.0, "100%"), DriftingController("Drift", 0.01, "100%")
+    sparse = DriftingController("Drift-5f", 0.01, "5")
+    assert isinstance(still, ControlledGenerator)
+    table = evaluate(refs, test, mean, std, embedder, HUMANML3D, CFG, [still, drifting, sparse])
+    assert table["Still"]["avg_err_m"] == pytest.approx(0.0, abs=1e-6) and table["Still"]["traj_err_20cm"] == 0.0
+    expected = np.mean([np.mean(0.01 * (ref.draw.lengths - 1) / 2) for ref in refs])  # mean of 0.01 t over t < L
+    assert table["Drift"]["avg_err_m"] == pytest.approx(expected, rel=1e-4)
+    assert 0 < table["Drift"]["loc_err_50cm"] < table["Drift"]["traj_err_50cm"] <= 1  # only late frames miss
+    for first, second in zip(still.hints[:3], drifting.hints[:3], strict=True):  # one density, the same hints
+        assert np.array_equal(first.mask, second.mask) and np.array_equal(first.joints, second.joints)
+    for hint, ref in zip(sparse.hints[:3], refs, strict=True):
+        assert hint.mask[:, :, 0].sum(1).tolist() == [min(5, n) for n in ref.draw.lengths]
+        assert not hint.mask[:, :, 1:].any()  # the pelvis only
+        assert np.allclose(hint.joints[:, :, 0, 1][hint.mask[:, :, 0]], 0.9)  # the real crops' pelvis height
+    assert "avg_err_m" in table["Drift-5f"] and "AITS_s" in table["Drift-5f"]

@@ -19,7 +19,7 @@ from pipelines.mld_family import MLDGenerator, load_mld, load_vae
 from pipelines.registry import FAMILIES
 from pipelines.runner import run_training
 from pipelines.stage import loop_config, train
-from stages import distill_lcm, evaluate, generate, report, train_evaluator, train_mld, train_vae
+from stages import distill_lcm, evaluate, generate, report, train_controlnet, train_evaluator, train_mld, train_vae
 
 pytestmark = pytest.mark.slow
 
@@ -39,6 +39,9 @@ def trained(small_store, ray_cluster):
     params["train_vae"]["model"].update(latent_dim=16, **TINY_NET)
     params["train_mld"]["model"].update(time_freq_dim=16, **TINY_NET)
     params["distill_lcm"]["loop"].update(max_steps=6, batch_size=8, log_every=3, warmup_steps=0)
+    params["train_controlnet"]["loop"].update(max_steps=6, batch_size=8, log_every=3, warmup_steps=0)
+    params["train_controlnet"]["encoder"].update(dim=16, **TINY_NET)
+    params["sample"]["control_refine_steps"] = 2
     params["evaluate"].update(replications=1, diversity_times=10, mm_texts=4, mm_repeats=11, timing_sentences=2)
     params["evaluate"]["samples"].update(prompts=["a person walks forward"], length=40)
     in_process = copy.deepcopy(params)
@@ -143,12 +146,20 @@ def test_mld_generator_is_seeded_and_zero_padded(trained):
 
 
 def test_evaluation_stages_and_report(trained):
-    train(distill_lcm.STAGE, trained)
     """Each family's stage writes its rows; the report merges them in registry order after Real."""
+    train(distill_lcm.STAGE, trained)
+    train(train_controlnet.STAGE, trained)
     rows = {name: evaluate.run(name, trained) for name in ("real", *FAMILIES)}
     assert list(rows["real"]) == ["Real"] and list(rows["baselines"]) == ["Random", "Retrieval"]
     assert list(rows["vae"]) == ["VAE"] and list(rows["mld"]) == ["MLD-DDIM50", "MLD-DDIM1", "MLD-DDIM2", "MLD-DDIM4"]
     assert list(rows["motionlcm"]) == ["MotionLCM-1", "MotionLCM-2", "MotionLCM-4"]
+    assert list(rows["motionlcm-control"]) == ["MotionLCM-Control", "MotionLCM-Control-5f", "MotionLCM-Control+refine",
+                                               "MotionLCM-1-uncontrolled"]
+    for row in rows["motionlcm-control"].values():
+        assert 0 <= row["loc_err_20cm"] <= row["traj_err_20cm"] <= 1 and row["avg_err_m"] > 0
+        assert row["loc_err_50cm"] <= row["loc_err_20cm"]
+    # the uncontrolled reference answers the same captions with the same seeds as MotionLCM-1
+    assert rows["motionlcm-control"]["MotionLCM-1-uncontrolled"]["FID"] == rows["motionlcm"]["MotionLCM-1"]["FID"]
     table = report.run(trained)
     assert list(table) == [row for name in ("real", *FAMILIES) for row in rows[name]]
     assert table["VAE"]["MPJPE_mm"] > 0 and "MPJPE_mm" not in table["Real"]
@@ -157,6 +168,7 @@ def test_evaluation_stages_and_report(trained):
     out = Path(trained["paths"]["artifacts"]) / "eval"
     assert json.loads((out / "metrics.json").read_text()) == table
     assert "| MLD-DDIM50 |" in (out / "report.md").read_text()
+    assert "## Trajectory control" in (out / "report.md").read_text()
     assert (out / "samples" / "MLD-DDIM50_0.gif").stat().st_size > 1000
     # a family evaluated again alone gives the same values: its rows do not depend on the others
     again = evaluate.run("baselines", trained)
@@ -221,3 +233,40 @@ def test_distill_lcm_sweep_ranks_trials_by_a_validation_metric(trained):
     scores = [row["val_FID"] for row in result.table]
     assert all(np.isfinite(scores)) and result.best["val_FID"] == min(scores)
     assert result.best["w_range"] in ([1.0, 3.0], [2.0, 2.0])
+
+
+def test_train_controlnet_resumes_exactly_and_follows_the_cli_trajectory(trained, tmp_path):
+    """The ControlNet through the runner: 3 steps resumed to 6 equal 6 straight; then the trajectory CLI."""
+    params = copy.deepcopy(trained)
+    if not (Path(params["paths"]["artifacts"]) / "distill_lcm" / "model.pt").exists():  # when run alone
+        train(distill_lcm.STAGE, params)
+    params["train_controlnet"]["loop"].update(lr_schedule="constant")
+    config = loop_config(train_controlnet.STAGE, params)
+    assert config["student_dir"].endswith("distill_lcm") and len(config["control"]["hint_mean"]) == 66
+    storage = str(tmp_path / "ray")
+    straight = run_training("cn", train_controlnet.STAGE.spec, config | {"max_steps": 6}, params["ray"],
+                            tmp_path / "straight", storage)
+    run_training("cn", train_controlnet.STAGE.spec, config | {"max_steps": 3}, params["ray"], tmp_path / "part",
+                 storage, run_name="cn-resumed")
+    resumed = run_training("cn", train_controlnet.STAGE.spec, config | {"max_steps": 6}, params["ray"],
+                           tmp_path / "resumed", storage, run_name="cn-resumed")
+    assert straight.attempts == [0] and resumed.attempts == [0, 3]
+    a, b = load_final_model(tmp_path / "straight"), load_final_model(tmp_path / "resumed")
+    assert a["models"]["controlnet"].keys() == b["models"]["controlnet"].keys()
+    for key, value in a["models"]["controlnet"].items():
+        assert np.array_equal(value.numpy(), b["models"]["controlnet"][key].numpy()), key
+    train(train_controlnet.STAGE, params)
+    [npy] = generate.generate(params, "motionlcm-control", ["a person walks"], [40], tmp_path / "c.npy",
+                              trajectory="line", size=1.0)
+    assert np.load(npy).shape == (40, 22, 3)
+    [gif] = generate.generate(params, "motionlcm-control", ["a person walks"], [40], tmp_path / "c.gif",
+                              trajectory="circle", refine=True)
+    assert gif.stat().st_size > 1000
+    path = tmp_path / "path.npy"
+    np.save(path, np.zeros((30, 3), np.float32))
+    with pytest.raises(ValueError, match="length mismatch"):
+        generate.generate(params, "motionlcm-control", ["x"], [40], tmp_path / "x.npy", trajectory=str(path))
+    with pytest.raises(ValueError, match="pass --trajectory"):
+        generate.generate(params, "motionlcm-control", ["x"], [40], tmp_path / "x.npy")
+    with pytest.raises(ValueError, match="need a controlled model"):
+        generate.generate(params, "motionlcm", ["x"], [40], tmp_path / "x.npy", trajectory="line")

@@ -1,0 +1,112 @@
+"""Probe: train ``train_controlnet`` with overrides and measure its control error and the refinement's.
+
+    python benchmarks/control_probe.py <name> [key=value ...]     # env: ARTIFACTS=artifacts ITEMS=128 DENSITY=100%
+
+Trains in-process into ``/tmp/probe/cn_<name>`` on top of the student, teacher, VAE and features
+under ``$ARTIFACTS`` (symlinked); with the name ``existing`` it skips training and probes
+``$ARTIFACTS/train_controlnet``. Then, on the first ``$ITEMS`` test motions (first caption, full
+length, seed 0, ``sample.motionlcm_guidance``), pelvis hints at ``$DENSITY``: the control errors
+of MotionLCM-1 without control, of the ControlNet, and of the refinement at several (steps, lr,
+realism) settings, plus batch-1 seconds per motion of the ControlNet with 0/10/20/30 refinement
+steps. Prints one JSON line per measurement. Used for docs/controlnet.md.
+"""
+import json
+import os
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from data.control import evaluation_mask  # noqa: E402
+from data.features import recover_from_ric  # noqa: E402
+from data.motion_dataset import pad_tokens  # noqa: E402
+from models.controlnet import ControlledStudent, refine_latents  # noqa: E402
+from models.metrics import control_errors  # noqa: E402
+from models.motionlcm import motionlcm_latents  # noqa: E402
+from pipelines.config import load_params  # noqa: E402
+from pipelines.controlnet_family import load_controlnet  # noqa: E402
+from pipelines.feature_store import FeatureStore  # noqa: E402
+from pipelines.mld_family import load_mld, load_motionlcm, load_vae  # noqa: E402
+from pipelines.stage import train  # noqa: E402
+from stages import train_controlnet  # noqa: E402
+
+REFINE = [(10, 0.1, 0.01), (20, 0.1, 0.01), (30, 0.1, 0.01), (20, 0.2, 0.01), (20, 0.1, 0.0), (20, 0.1, 0.1)]
+
+torch.set_num_threads(2)
+name, overrides = sys.argv[1], sys.argv[2:]
+source = Path(os.environ.get("ARTIFACTS", "artifacts")).resolve()
+art = source if name == "existing" else Path(f"/tmp/probe/cn_{name}")
+params = load_params([f"paths.artifacts={art}", f"features.out={source / 'features'}",
+                      "paths.ray_storage=/tmp/probe/ray", "ray.num_workers=0", *overrides])
+if name != "existing":
+    art.mkdir(parents=True, exist_ok=True)
+    for d in ("train_vae", "train_mld", "distill_lcm"):
+        if not (art / d).exists():
+            os.symlink(source / d, art / d)
+    start = time.time()
+    train(train_controlnet.STAGE, params)
+    print(json.dumps({"name": name, "overrides": overrides, "train_s": round(time.time() - start)}))
+
+store = FeatureStore(source / "features")
+vae, (_, schedule, _) = load_vae(source / "train_vae"), load_mld(source / "train_mld")
+student = load_motionlcm(source / "distill_lcm")
+controlnet = load_controlnet(art / "train_controlnet", student)
+items = store.split("test")[: int(os.environ.get("ITEMS", "128"))]
+lengths = torch.tensor([item.length for item in items])
+raw = np.zeros((len(items), int(lengths.max()), store.feature_dim), np.float32)
+for k, item in enumerate(items):
+    raw[k, : item.length] = item.features
+target = recover_from_ric(raw, store.joints_num)
+mask = evaluation_mask(lengths.numpy(), raw.shape[1], store.joints_num, [0], os.environ.get("DENSITY", "100%"),
+                       np.random.default_rng(0))
+hint, hint_mask = torch.from_numpy(target).float(), torch.from_numpy(mask)
+text = torch.from_numpy(np.stack([item.text_pooled[0] for item in items]).astype(np.float32))
+tokens, token_mask = pad_tokens([np.asarray(item.text_tokens[0], np.float32) for item in items])
+w = params["sample"]["motionlcm_guidance"] - 1.0
+mean, std = torch.from_numpy(store.mean), torch.from_numpy(store.std)
+scale = student.config.latent_scale
+
+
+def latents(model: torch.nn.Module, index: slice = slice(None)) -> torch.Tensor:
+    return motionlcm_latents(model, schedule, text[index], 1, w, torch.Generator().manual_seed(0),
+                             text_tokens=tokens[index], text_mask=token_mask[index])
+
+
+def errors(z: torch.Tensor) -> dict[str, float]:
+    with torch.no_grad():
+        features = vae.decode_by_length(z * scale, lengths).numpy()
+    joints = recover_from_ric(features * store.std + store.mean, store.joints_num)
+    return {k: round(v, 3) for k, v in control_errors(joints, target, mask).items()}
+
+
+def refine(z: torch.Tensor, steps: int, lr: float, realism: float, index: slice = slice(None)) -> torch.Tensor:
+    return refine_latents(vae, z, hint[index], hint_mask[index], lengths[index], mean=mean, std=std,
+                          latent_scale=scale, steps=steps, lr=lr, realism_weight=realism)
+
+
+print(json.dumps({"name": name, "row": "uncontrolled", **errors(latents(student))}))
+controlled = ControlledStudent(student, controlnet, hint, hint_mask)
+z0 = latents(controlled)
+print(json.dumps({"name": name, "row": "controlnet", **errors(z0)}))
+for steps, lr, realism in REFINE:
+    print(json.dumps({"name": name, "row": f"refine steps={steps} lr={lr} realism={realism}",
+                      **errors(refine(z0, steps, lr, realism))}))
+
+first = int(lengths[0])
+single = ControlledStudent(student, controlnet, hint[:1, :first], hint_mask[:1, :first])
+for steps in (0, 10, 20, 30):
+    seconds = []
+    for _ in range(6):  # the first is a warm-up
+        start = time.perf_counter()
+        z = latents(single, slice(0, 1))
+        if steps:
+            z = refine_latents(vae, z, hint[:1, :first], hint_mask[:1, :first], lengths[:1], mean=mean, std=std,
+                               latent_scale=scale, steps=steps, lr=0.1, realism_weight=0.01)
+        with torch.no_grad():
+            vae.decode_by_length(z * scale, lengths[:1])
+        seconds.append(time.perf_counter() - start)
+    print(json.dumps({"name": name, "batch1_refine_steps": steps, "frames": first,
+                      "seconds": round(float(np.mean(seconds[1:])), 4)}))

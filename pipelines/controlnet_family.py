@@ -1,0 +1,123 @@
+"""MotionLCM's ControlNet as evaluation rows and a ``stages.generate`` model (registry entry ``motionlcm-control``).
+
+Rows (all one-step MotionLCM, the configured guidance, pelvis hints from the test crops):
+
+- ``MotionLCM-Control``: every frame controlled (100 %);
+- ``MotionLCM-Control-5f``: 5 random frames;
+- ``MotionLCM-Control+refine``: 100 %, then test-time refinement of the latent
+  (:func:`models.controlnet.refine_latents`, ``sample.control_refine_*``);
+- ``MotionLCM-1-uncontrolled``: MotionLCM-1 without a ControlNet, scored against the same 100 % hints
+  (the control error of a model that ignores them).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import numpy as np
+import torch
+
+from models.controlnet import ControlConfig, ControlledStudent, MotionControlNet, refine_latents
+from models.diffusion import NoiseSchedule
+from models.generator import ControlSpec, Hint, TextBatch
+from models.mld import MLDDenoiser
+from models.motionlcm import motionlcm_latents
+from models.vae import MotionVAE
+from pipelines.checkpoint import load_final_model
+from pipelines.mld_family import MotionLCMGenerator, load_mld, load_motionlcm, load_vae, word_tokens
+
+if TYPE_CHECKING:
+    from pipelines.registry import EvalContext, GenerateOptions
+
+
+def load_controlnet(out_dir: Path, student: MLDDenoiser) -> MotionControlNet:
+    """The trained ControlNet of a ``train_controlnet`` output folder, on ``student``, in eval mode."""
+    payload = load_final_model(out_dir)
+    controlnet = MotionControlNet(student, ControlConfig(**payload["config"]["control"]))
+    controlnet.load_state_dict(payload["models"]["controlnet"])
+    return controlnet.eval()
+
+
+class ControlNetGenerator:
+    """One-step MotionLCM with the ControlNet (and optionally test-time refinement), then VAE decoding."""
+
+    stochastic = True
+    nfe = 2  # the ControlNet copy and the student, once each
+
+    def __init__(self, name: str, student: MLDDenoiser, controlnet: MotionControlNet, vae: MotionVAE,
+                 schedule: NoiseSchedule, guidance: float, control: ControlSpec, mean: np.ndarray, std: np.ndarray,
+                 refine: dict[str, float] | None = None) -> None:
+        self.name, self.student, self.controlnet, self.vae, self.schedule = name, student, controlnet, vae, schedule
+        self.w, self.control, self.refine = guidance - 1.0, control, refine
+        self.mean, self.std = torch.from_numpy(mean.astype(np.float32)), torch.from_numpy(std.astype(np.float32))
+
+    @torch.inference_mode(False)
+    def sample(self, text: TextBatch, lengths: np.ndarray, seed: int, hint: Hint) -> np.ndarray:
+        if hint.joints.shape[0] != len(text) or hint.joints.shape[1] < int(np.max(lengths)):
+            raise ValueError(f"hint {hint.joints.shape} does not cover {len(text)} motions of up to "
+                             f"{int(np.max(lengths))} frames")
+        frames = int(np.max(lengths))
+        joints = torch.from_numpy(hint.joints[:, :frames].astype(np.float32))
+        mask = torch.from_numpy(hint.mask[:, :frames])
+        lengths_t = torch.as_tensor(lengths)
+        model = ControlledStudent(self.student, self.controlnet, joints, mask)
+        z0 = motionlcm_latents(model, self.schedule, torch.from_numpy(text.pooled.astype(np.float32)), 1, self.w,
+                               torch.Generator().manual_seed(seed), **word_tokens(self.student, text))
+        scale = self.student.config.latent_scale
+        if self.refine is not None:
+            z0 = refine_latents(self.vae, z0, joints, mask, lengths_t, mean=self.mean, std=self.std,
+                                latent_scale=scale, steps=int(self.refine["steps"]), lr=self.refine["lr"],
+                                realism_weight=self.refine["realism_weight"])
+        with torch.no_grad():
+            return self.vae.eval().decode_by_length(z0 * scale, lengths_t).numpy()
+
+
+class Uncontrolled:
+    """A text-only generator scored against a :class:`ControlSpec`'s hints, which it ignores."""
+
+    def __init__(self, name: str, generator: MotionLCMGenerator, control: ControlSpec) -> None:
+        self.name, self.generator, self.control = name, generator, control
+        self.nfe, self.stochastic = generator.nfe, generator.stochastic
+
+    def sample(self, text: TextBatch, lengths: np.ndarray, seed: int, hint: Hint) -> np.ndarray:
+        return self.generator.sample(text, lengths, seed)
+
+
+def _refine_settings(ctx: EvalContext) -> dict[str, float]:
+    sample = ctx.params["sample"]
+    return {"steps": sample["control_refine_steps"], "lr": sample["control_refine_lr"],
+            "realism_weight": sample["control_refine_realism"]}
+
+
+def _controlnet(ctx: EvalContext, name: str, density: str, refine: bool = False,
+                base: ControlNetGenerator | None = None) -> ControlNetGenerator:
+    if base is None:
+        student = load_motionlcm(ctx.trained("distill_lcm"))
+        _, schedule, _ = load_mld(ctx.trained("train_mld"))
+        controlnet = load_controlnet(ctx.trained("train_controlnet"), student)
+        vae = load_vae(ctx.trained("train_vae"))
+    else:
+        student, controlnet, vae, schedule = base.student, base.controlnet, base.vae, base.schedule
+    return ControlNetGenerator(name, student, controlnet, vae, schedule, ctx.params["sample"]["motionlcm_guidance"],
+                               ControlSpec(density), ctx.store.mean, ctx.store.std,
+                               _refine_settings(ctx) if refine else None)
+
+
+def controlnet_rows(ctx: EvalContext) -> list[ControlNetGenerator | Uncontrolled]:
+    """MotionLCM-Control (100 %), -5f, +refine and the uncontrolled reference (one load)."""
+    full = _controlnet(ctx, "MotionLCM-Control", "100%")
+    text_only = MotionLCMGenerator("MotionLCM-1", full.student, full.vae, full.schedule, 1, full.w + 1.0)
+    return [full, _controlnet(ctx, "MotionLCM-Control-5f", "5", base=full),
+            _controlnet(ctx, "MotionLCM-Control+refine", "100%", refine=True, base=full),
+            Uncontrolled("MotionLCM-1-uncontrolled", text_only, ControlSpec("100%"))]
+
+
+def controlnet_generator(ctx: EvalContext, options: GenerateOptions) -> ControlNetGenerator:
+    """``stages.generate --model motionlcm-control``: one step, refinement when ``options.refine``."""
+    if options.steps not in (None, 1):
+        raise ValueError(f"--steps {options.steps}: the ControlNet samples with one MotionLCM step")
+    generator = _controlnet(ctx, "MotionLCM-Control", "100%", refine=options.refine)
+    if options.guidance is not None:
+        generator.w = options.guidance - 1.0
+    return generator

@@ -1,0 +1,96 @@
+"""Stage ``train_controlnet``: MotionLCM's motion ControlNet for trajectory control (MotionLCM §3.3).
+
+``python -m stages.train_controlnet [key=value ...]`` trains :class:`models.controlnet.MotionControlNet`
+(a trainable copy of the ``distill_lcm`` student plus the trajectory encoder) through the one runner;
+the student, the VAE and the noise schedule stay frozen. Each step samples latents from the cached
+frozen-VAE posteriors (:func:`pipelines.latent_cache.control_dataset`), hints from the same windows'
+global joints (:func:`data.control.training_mask`: one of ``train_joints`` per sample, a random number
+of frames), t on the student's LCM solver grid and w over the student's ``w_range``, and minimises
+Eq. 10 (``||ẑ0 - z0||² + control_weight · L_control``). AdamW, cosine schedule with warm-up,
+gradient clipping. Writes ``artifacts/train_controlnet/``.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from data.control import joint_ids, training_mask
+from data.features import recover_from_ric
+from models.controlnet import ControlConfig, MotionControlNet, controlnet_loss
+from models.vae import LatentDistribution
+from pipelines.checkpoint import load_final_model
+from pipelines.cli import artifacts_dir
+from pipelines.feature_store import FeatureStore
+from pipelines.latent_cache import collate_words, control_dataset
+from pipelines.mld_family import load_mld, load_motionlcm, load_vae
+from pipelines.runner import Components, StepContext, TrainSpec
+from pipelines.stage import TrainingStage, main
+
+
+def build(config: dict) -> Components:
+    student = load_motionlcm(Path(config["student_dir"])).requires_grad_(False)
+    _, schedule, _ = load_mld(Path(config["teacher_dir"]))
+    controlnet = MotionControlNet(student, ControlConfig(**config["control"]))
+    params = [p for p in controlnet.parameters() if p.requires_grad]
+    opt = torch.optim.AdamW(params, lr=config["lr"], weight_decay=config["weight_decay"])
+    vae = load_vae(Path(config["vae_dir"])).requires_grad_(False)
+    return Components(models={"controlnet": controlnet}, optimizers={"adamw": opt},
+                      frozen={"student": student, "vae": vae, "schedule": schedule})
+
+
+def step(batch: dict, ctx: StepContext) -> dict[str, torch.Tensor]:
+    cfg, student = ctx.config, ctx.frozen["student"]
+    lengths = batch["length"]
+    frames = int(lengths.max())
+    joints = batch["joints"][:, :frames]
+    mask = training_mask(lengths, frames, joints.shape[2], cfg["control"]["train_joints"]).to(joints.device)
+    z0 = LatentDistribution(batch["mu"], batch["logvar"]).sample() / student.config.latent_scale
+    losses = controlnet_loss(
+        ctx.models["controlnet"], student, ctx.frozen["vae"], ctx.frozen["schedule"], z0, batch["text"], joints,
+        mask, lengths, mean=torch.tensor(cfg["mean"], device=z0.device), std=torch.tensor(cfg["std"], device=z0.device),
+        w_range=tuple(cfg["w_range"]), control_weight=cfg["control_weight"], num_ddim_steps=cfg["num_ddim_steps"],
+        text_tokens=batch.get("tokens"), text_mask=batch.get("token_mask"))
+    ctx.update(losses["total"])
+    return {"loss": losses["total"].detach(), "latent": losses["latent"], "control": losses["control"]}
+
+
+def hint_statistics(features_dir: Path) -> tuple[list[float], list[float]]:
+    """Per-(joint, axis) mean and std of the training motions' global joint positions, (3J) each."""
+    store = FeatureStore(features_dir)
+    joints = np.concatenate([recover_from_ric(item.features, store.joints_num).reshape(item.length, -1)
+                             for item in store.split("train")])
+    return joints.mean(0).tolist(), np.maximum(joints.std(0), 1e-3).tolist()
+
+
+def stage_config(params: dict[str, Any]) -> dict[str, Any]:
+    """The stage's loop-config keys: the student's data settings, the encoder and the loss settings."""
+    cfg = params["train_controlnet"]
+    if cfg["control_weight"] < 0:
+        raise ValueError(f"train_controlnet.control_weight: must be >= 0, got {cfg['control_weight']}")
+    student_dir = artifacts_dir(params) / "distill_lcm"
+    student = load_final_model(student_dir)["config"]
+    mean, std = hint_statistics(Path(student["features_dir"]))
+    control = ControlConfig(joints_num=len(mean) // 3, hint_mean=mean, hint_std=std,
+                            train_joints=joint_ids(cfg["train_joints"]), **cfg["encoder"])
+    return {
+        "student_dir": str(student_dir), "teacher_dir": student["teacher_dir"],
+        **{key: student[key] for key in ("features_dir", "vae_dir", "mean", "std", "crop_frames", "max_text_tokens",
+                                         "model", "w_range", "num_ddim_steps")},
+        "control": control.to_dict(),
+        **{key: cfg[key] for key in ("lr", "weight_decay", "control_weight")},
+    }
+
+
+STAGE = TrainingStage(
+    name="train_controlnet", module=__name__, config=stage_config,
+    spec=TrainSpec(build=build, dataset=control_dataset, step=step, collate=collate_words),
+    inputs=("student_dir", "teacher_dir", "features_dir", "vae_dir"), params=("train_controlnet", "paths", "ray"),
+)
+
+
+if __name__ == "__main__":
+    main(STAGE)

@@ -1,0 +1,233 @@
+"""MotionLCM's ControlNet (models/controlnet.py) and its hints (data/control.py) on tiny networks."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from data.control import evaluation_mask, joint_ids, keyframe_count, training_mask
+from data.features import recover_from_ric
+from models.controlnet import (
+    ControlConfig,
+    ControlledStudent,
+    MotionControlNet,
+    control_loss,
+    controlnet_loss,
+    decode_joints,
+    refine_latents,
+)
+from models.diffusion import NoiseSchedule
+from models.generator import Hint
+from models.mld import MLDConfig, MLDDenoiser
+from models.motionlcm import guidance_embedding, motionlcm_latents
+from models.vae import MotionVAE
+
+pytestmark = pytest.mark.usefixtures("one_thread")
+
+J, D = 22, 263
+STUDENT = MLDConfig(latent_tokens=2, latent_dim=8, hidden_dim=16, text_dim=6, layers=3, heads=2, ff_dim=16,
+                    dropout=0.0, time_freq_dim=16, word_tokens="cross_attention", token_dim=5, time_cond_dim=256)
+SCHEDULE = NoiseSchedule.from_name("scaled_linear", 1000, beta_start=0.00085, beta_end=0.012)
+
+
+def control_config(**overrides) -> ControlConfig:
+    return ControlConfig(joints_num=J, hint_mean=[0.0] * 3 * J, hint_std=[1.0] * 3 * J, dim=16, layers=1, heads=2,
+                         ff_dim=16, **overrides)
+
+
+def student() -> MLDDenoiser:
+    torch.manual_seed(0)
+    net = MLDDenoiser(STUDENT)
+    with torch.no_grad():  # outputs that are not ~0 everywhere
+        for p in net.parameters():
+            p.add_(0.2 * torch.randn_like(p))
+    return net.eval()
+
+
+def batch(b: int = 3, frames: int = 10) -> dict[str, torch.Tensor]:
+    g = torch.Generator().manual_seed(1)
+    mask = torch.zeros(b, frames, J, dtype=torch.bool)
+    mask[:, ::2, 0] = True
+    return {"z_t": torch.randn(b, 2, 8, generator=g), "t": torch.tensor([799, 99, 499][:b]),
+            "text_emb": torch.randn(b, 6, generator=g), "hint": torch.randn(b, frames, J, 3, generator=g),
+            "mask": mask, "time_cond": guidance_embedding(torch.full((b,), 1.5)),
+            "text_tokens": torch.randn(b, 4, 5, generator=g), "text_mask": torch.ones(b, 4, dtype=torch.bool)}
+
+
+def randomise(module: torch.nn.Module, seed: int = 2) -> None:
+    g = torch.Generator().manual_seed(seed)
+    with torch.no_grad():
+        for p in module.parameters():
+            p.add_(0.3 * torch.randn(p.shape, generator=g))
+
+
+def words(x: dict) -> dict:
+    return {k: x[k] for k in ("time_cond", "text_tokens", "text_mask")}
+
+
+def test_fresh_controlnet_leaves_the_student_unchanged():
+    """Zero-initialised projections: at initialisation the controlled output is the student's, for any hint."""
+    base = student()
+    controlnet = MotionControlNet(base, control_config())
+    x = batch()
+    plain = base(x["z_t"], x["t"], x["text_emb"], **words(x))
+    controlled = ControlledStudent(base, controlnet, x["hint"], x["mask"])(x["z_t"], x["t"], x["text_emb"], **words(x))
+    assert torch.equal(plain, controlled)
+    randomise(controlnet)  # trained weights: the hint now changes the output
+    controlled = ControlledStudent(base, controlnet, x["hint"], x["mask"])(x["z_t"], x["t"], x["text_emb"], **words(x))
+    assert (controlled - plain).abs().max() > 1e-3
+
+
+def test_controlnet_copies_the_student_and_only_it_trains():
+    base = student()
+    controlnet = MotionControlNet(base, control_config())
+    copied = controlnet.copy.state_dict()
+    for key, value in base.state_dict().items():
+        if key in copied:
+            assert torch.equal(copied[key], value), key
+    assert all(p.requires_grad for p in controlnet.parameters())
+    assert "transformer.norm.weight" not in copied and "latent_out.weight" not in copied  # unused by a ControlNet
+
+
+def test_encoder_ignores_uncontrolled_entries():
+    """Hint values outside the mask never reach the ControlNet; the mask itself does."""
+    base = student()
+    controlnet = MotionControlNet(base, control_config())
+    randomise(controlnet)
+    x = batch()
+    out = controlnet.encoder(x["hint"], x["mask"])
+    other = torch.where(x["mask"][..., None], x["hint"], torch.randn_like(x["hint"]) * 5)
+    assert torch.allclose(controlnet.encoder(other, x["mask"]), out, atol=1e-6)
+    fewer = x["mask"].clone()
+    fewer[:, 4:] = False
+    assert not torch.allclose(controlnet.encoder(x["hint"], fewer), out, atol=1e-4)
+    nothing = controlnet.encoder(x["hint"], torch.zeros_like(x["mask"]))  # only the global tokens: finite
+    assert torch.isfinite(nothing).all()
+
+
+def test_control_loss_known_values():
+    joints = torch.zeros(2, 4, J, 3)
+    hint = joints.clone()
+    mask = torch.zeros(2, 4, J, dtype=torch.bool)
+    mask[0, 1, 0] = mask[1, 3, 0] = True
+    assert control_loss(joints, hint, mask) == 0
+    hint[0, 1, 0] = torch.tensor([0.3, 0.0, 0.4])  # squared error 0.25 over 2 entries x 3 axes
+    hint[:, :, 5] = 7.0  # uncontrolled entries: ignored
+    assert control_loss(joints, hint, mask).item() == pytest.approx(0.25 / 6)
+    assert control_loss(joints, hint, torch.zeros_like(mask)) == 0
+
+
+def test_keyframe_counts_and_evaluation_masks():
+    assert [keyframe_count(120, d) for d in ("100%", "25%", "5", "2", "1")] == [120, 30, 5, 2, 1]
+    assert keyframe_count(3, "5") == 3 and keyframe_count(2, "25%") == 1
+    for bad in ("0%", "150%", "many", "0"):
+        with pytest.raises(ValueError, match="control density"):
+            keyframe_count(10, bad)
+    lengths = np.array([40, 17, 80])
+    for density, counts in (("100%", [40, 17, 80]), ("25%", [10, 4, 20]), ("5", [5, 5, 5])):
+        mask = evaluation_mask(lengths, 80, J, [0, 21], density, np.random.default_rng(0))
+        assert mask.shape == (3, 80, J)
+        assert mask[:, :, 0].sum(1).tolist() == counts and np.array_equal(mask[:, :, 0], mask[:, :, 21])
+        assert mask.sum() == 2 * sum(counts)
+        assert not any(mask[b, n:].any() for b, n in enumerate(lengths))  # padded frames never count
+    assert joint_ids(["pelvis", "right_wrist"]) == (0, 21)
+    with pytest.raises(ValueError, match="control joints"):
+        joint_ids(["tail"])
+
+
+def test_training_masks_one_joint_and_a_random_density():
+    lengths = torch.tensor([30, 2, 60, 1] * 50)
+    mask = training_mask(lengths, 60, J, (0, 10, 15), torch.Generator().manual_seed(0))
+    joints_used = mask.any(1)  # (B, J)
+    assert (joints_used.sum(1) == 1).all() and set(joints_used.nonzero()[:, 1].tolist()) == {0, 10, 15}
+    counts = mask.sum((1, 2))
+    assert ((counts >= 1) & (counts <= (lengths - 1).clamp(min=1))).all()
+    assert counts[lengths == 1].eq(1).all() and counts[lengths == 2].eq(1).all()
+    assert counts[lengths == 60].min() < 10 and counts[lengths == 60].max() > 45  # spread over [1, 59]
+    valid = torch.arange(60)[None] < lengths[:, None]
+    assert not mask[~valid].any()
+
+
+def tiny_vae() -> MotionVAE:
+    torch.manual_seed(3)
+    return MotionVAE({"latent_tokens": 2, "latent_dim": 8, "layers": 1, "heads": 2, "ff_dim": 16}).eval()
+
+
+def test_controlnet_loss_trains_only_the_controlnet_and_weights_the_control_term():
+    base, vae = student().requires_grad_(False), tiny_vae().requires_grad_(False)
+    controlnet = MotionControlNet(base, control_config())
+    randomise(controlnet)
+    x = batch(b=2, frames=12)
+    lengths = torch.tensor([12, 9])
+    mean, std = torch.zeros(D), torch.full((D,), 0.1)
+    kwargs = {"mean": mean, "std": std, "w_range": (1.0, 2.0), "text_tokens": x["text_tokens"],
+              "text_mask": x["text_mask"]}
+    args = (controlnet, base, vae, SCHEDULE, torch.randn(2, 2, 8), x["text_emb"], x["hint"], x["mask"], lengths)
+    a = controlnet_loss(*args, control_weight=0.0, generator=torch.Generator().manual_seed(4), **kwargs)
+    b = controlnet_loss(*args, control_weight=2.0, generator=torch.Generator().manual_seed(4), **kwargs)
+    assert torch.equal(a["latent"], b["latent"]) and torch.equal(a["control"], b["control"])
+    assert b["total"].item() == pytest.approx((b["latent"] + 2.0 * b["control"]).item(), rel=1e-6)
+    b["total"].backward()
+    assert all(p.grad is not None and torch.isfinite(p.grad).all() for p in controlnet.parameters())
+    assert all(p.grad is None for p in (*base.parameters(), *vae.parameters()))
+
+
+def test_decode_joints_matches_the_numpy_recovery():
+    vae = tiny_vae()
+    z = torch.randn(2, 2, 8)
+    lengths = torch.tensor([10, 7])
+    mean, std = torch.randn(D) * 0.1, torch.rand(D) + 0.5
+    joints = decode_joints(vae, z, lengths, 10, mean, std, latent_scale=2.0)
+    features = (vae.decode(2.0 * z, lengths, 10) * std + mean).detach().numpy()
+    assert np.allclose(joints.detach().numpy(), recover_from_ric(features.astype(np.float64), J), atol=1e-4)
+
+
+def test_refinement_pulls_the_decoded_joints_to_the_hint():
+    vae = tiny_vae().requires_grad_(False)
+    lengths = torch.tensor([12, 12])
+    mean, std = torch.zeros(D), torch.full((D,), 0.1)
+    target = decode_joints(vae, torch.randn(2, 2, 8), lengths, 12, mean, std, 1.0).detach()
+    mask = torch.zeros(2, 12, J, dtype=torch.bool)
+    mask[:, :, 0] = True
+    z0 = torch.randn(2, 2, 8)
+    before = control_loss(decode_joints(vae, z0, lengths, 12, mean, std, 1.0), target, mask)
+    z = refine_latents(vae, z0, target, mask, lengths, mean=mean, std=std, latent_scale=1.0, steps=30, lr=0.1,
+                       realism_weight=0.0)
+    after = control_loss(decode_joints(vae, z, lengths, 12, mean, std, 1.0), target, mask)
+    assert after < 0.5 * before
+    tied = refine_latents(vae, z0, target, mask, lengths, mean=mean, std=std, latent_scale=1.0, steps=30, lr=0.1,
+                          realism_weight=1e6)
+    assert (tied - z0).abs().max() < (z - z0).abs().max()  # the realism term holds the latent near the sample
+
+
+def test_controlled_sampling_is_seeded_and_reduces_to_motionlcm_at_initialisation():
+    base = student()
+    x = batch()
+    controlled = ControlledStudent(base, MotionControlNet(base, control_config()), x["hint"], x["mask"])
+    kwargs = {"text_tokens": x["text_tokens"], "text_mask": x["text_mask"]}
+    plain = motionlcm_latents(base, SCHEDULE, x["text_emb"], 1, 1.5, torch.Generator().manual_seed(5), **kwargs)
+    same = motionlcm_latents(controlled, SCHEDULE, x["text_emb"], 1, 1.5, torch.Generator().manual_seed(5), **kwargs)
+    assert torch.equal(plain, same)
+
+
+def test_hint_validation():
+    joints = np.zeros((2, 5, J, 3), np.float32)
+    mask = np.zeros((2, 5, J), bool)
+    Hint(joints, mask)
+    with pytest.raises(ValueError, match="mask must be boolean"):
+        Hint(joints, mask.astype(int))
+    with pytest.raises(ValueError, match=r"\(B, T, J, 3\)"):
+        Hint(joints[..., :2], mask)
+    joints[0, 1, 0, 0] = np.nan
+    Hint(joints, mask)  # NaN outside the mask is ignored
+    mask[0, 1, 0] = True
+    with pytest.raises(ValueError, match="NaN"):
+        Hint(joints, mask)
+
+
+def test_control_config_validates_statistics():
+    with pytest.raises(ValueError, match="66 values"):
+        ControlConfig(joints_num=J, hint_mean=[0.0] * 3, hint_std=[1.0] * 3)
+    with pytest.raises(ValueError, match="positive"):
+        ControlConfig(joints_num=J, hint_mean=[0.0] * 66, hint_std=[0.0] * 66)
