@@ -97,8 +97,8 @@ class TrajectoryEncoder(nn.Module):
 
     def forward(self, hint: Tensor, mask: Tensor) -> Tensor:
         b, t, j, _ = hint.shape
-        m = mask.to(hint.dtype)[..., None]
-        x = self.input((((hint - self.hint_mean) / self.hint_std) * m).reshape(b, t, 3 * j))
+        x = torch.where(mask[..., None], (hint - self.hint_mean) / self.hint_std, 0.0)  # NaN outside: ignored
+        x = self.input(x.reshape(b, t, 3 * j))
         tokens = torch.cat([self.global_tokens.expand(b, -1, -1), x], dim=1)
         tokens = tokens + sinusoidal_positions(tokens.shape[1], tokens.shape[2], device=hint.device)[None]
         n = self.global_tokens.shape[0]
@@ -122,9 +122,12 @@ class MotionControlNet(nn.Module):
             nn.init.zeros_(proj.bias)
         self.encoder = TrajectoryEncoder(config, student.config.latent_tokens, student.config.latent_dim)
 
-    def residuals(self, z_t: Tensor, t: Tensor | int, text_emb: Tensor, hint: Tensor, mask: Tensor,
-                  **kwargs: Tensor | None) -> list[Tensor]:
-        """One residual (B, S, h) per student layer; ``kwargs``: the student's time_cond/text_tokens/text_mask."""
+    def forward(self, z_t: Tensor, t: Tensor | int, text_emb: Tensor, hint: Tensor, mask: Tensor,
+                **kwargs: Tensor | None) -> list[Tensor]:
+        """One residual (B, S, h) per student layer; ``kwargs``: the student's time_cond/text_tokens/text_mask.
+
+        (``forward``, not a named method, so a DDP-wrapped ControlNet synchronises its gradients.)
+        """
         hidden = self.copy.run(z_t + self.encoder(hint, mask), t, text_emb, **kwargs).hidden_states
         return [proj(h) for proj, h in zip(self.projections, hidden, strict=True)]
 
@@ -136,9 +139,10 @@ class ControlledStudent(nn.Module):
         super().__init__()
         self.student, self.controlnet, self.hint, self.mask = student, controlnet, hint, mask
         self.config = student.config
+        self.training = controlnet.training  # the flag a sampler's eval-mode block restores (no recursion here)
 
     def forward(self, z_t: Tensor, t: Tensor | int, text_emb: Tensor, **kwargs: Tensor | None) -> Tensor:
-        residuals = self.controlnet.residuals(z_t, t, text_emb, self.hint, self.mask, **kwargs)
+        residuals = self.controlnet(z_t, t, text_emb, self.hint, self.mask, **kwargs)
         return self.student(z_t, t, text_emb, residuals=residuals, **kwargs)
 
 
@@ -150,9 +154,14 @@ def decode_joints(vae: MotionVAE, z0: Tensor, lengths: Tensor, num_frames: int, 
 
 
 def control_loss(joints: Tensor, hint: Tensor, mask: Tensor) -> Tensor:
-    """Eq. 9: squared error (metres²) over the controlled entries and axes; 0 when nothing is controlled."""
-    m = mask.to(joints.dtype)[..., None]
-    return (((joints - hint) * m) ** 2).sum() / (3.0 * m.sum()).clamp(min=1.0)
+    """Eq. 9: squared error (metres²) over the batch's controlled entries and axes; 0 when nothing is controlled.
+
+    Documented choice: one mean over all controlled entries of the batch (a sample with many
+    keyframes weighs more), where the reference averages each sample's mean over the batch.
+    Hint values outside ``mask`` (even NaN) are ignored.
+    """
+    error = torch.where(mask[..., None], joints - hint, 0.0)
+    return (error**2).sum() / (3.0 * mask.sum()).clamp(min=1.0)
 
 
 def controlnet_loss(
@@ -212,7 +221,7 @@ def refine_latents(
     std: Tensor,
     latent_scale: float,
     steps: int = 10,
-    lr: float = 0.05,
+    lr: float = 0.1,
     realism_weight: float = 0.01,
 ) -> Tensor:
     """Test-time refinement: a few Adam steps on the sampled latent toward the hint (our addition).
@@ -220,16 +229,18 @@ def refine_latents(
     Minimises ``L_control(decode(z)) + realism_weight · mean((z - z0)²)`` over z from z0 (B, L, C),
     gradients through the frozen decoder and the joint recovery. The realism term keeps z near the
     model's own sample, so the motion stays one the decoder produces for text-conditioned latents,
-    rather than any latent that happens to pass the keyframes. Returns the refined z (no grad).
+    rather than any latent that happens to pass the keyframes. Controlled entries on frames at or past
+    ``lengths`` are ignored. Gradients are taken for z only (never the decoder's weights). Returns the
+    refined z (no grad).
     """
+    frames = hint.shape[1]
+    mask = mask & lengths_to_mask(lengths, frames).to(mask.device)[..., None]
     z = z0.detach().clone().requires_grad_(True)
     opt = torch.optim.Adam([z], lr=lr)
-    frames = hint.shape[1]
     with torch.enable_grad():
         for _ in range(steps):
             joints = decode_joints(vae, z, lengths, frames, mean, std, latent_scale)
             loss = control_loss(joints, hint, mask) + realism_weight * ((z - z0) ** 2).mean()
-            opt.zero_grad(set_to_none=True)
-            loss.backward()
+            (z.grad,) = torch.autograd.grad(loss, [z])
             opt.step()
     return z.detach()

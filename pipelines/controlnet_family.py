@@ -23,6 +23,7 @@ from models.diffusion import NoiseSchedule
 from models.generator import ControlSpec, Hint, TextBatch
 from models.mld import MLDDenoiser
 from models.motionlcm import motionlcm_latents
+from models.transformer import lengths_to_mask
 from models.vae import MotionVAE
 from pipelines.checkpoint import load_final_model
 from pipelines.mld_family import MotionLCMGenerator, load_mld, load_motionlcm, load_vae, word_tokens
@@ -54,13 +55,13 @@ class ControlNetGenerator:
 
     @torch.inference_mode(False)
     def sample(self, text: TextBatch, lengths: np.ndarray, seed: int, hint: Hint) -> np.ndarray:
-        if hint.joints.shape[0] != len(text) or hint.joints.shape[1] < int(np.max(lengths)):
-            raise ValueError(f"hint {hint.joints.shape} does not cover {len(text)} motions of up to "
-                             f"{int(np.max(lengths))} frames")
-        frames = int(np.max(lengths))
-        joints = torch.from_numpy(hint.joints[:, :frames].astype(np.float32))
-        mask = torch.from_numpy(hint.mask[:, :frames])
+        frames, joints_num = int(np.max(lengths)), self.controlnet.config.joints_num
+        if hint.joints.shape[0] != len(text) or hint.joints.shape[1] < frames or hint.joints.shape[2] != joints_num:
+            raise ValueError(f"hint {hint.joints.shape} does not cover {len(text)} motions of up to {frames} frames "
+                             f"and {joints_num} joints")
         lengths_t = torch.as_tensor(lengths)
+        joints = torch.from_numpy(hint.joints[:, :frames].astype(np.float32))
+        mask = torch.from_numpy(hint.mask[:, :frames]) & lengths_to_mask(lengths_t, frames)[..., None]
         model = ControlledStudent(self.student, self.controlnet, joints, mask)
         z0 = motionlcm_latents(model, self.schedule, torch.from_numpy(text.pooled.astype(np.float32)), 1, self.w,
                                torch.Generator().manual_seed(seed), **word_tokens(self.student, text))

@@ -99,6 +99,8 @@ def test_encoder_ignores_uncontrolled_entries():
     out = controlnet.encoder(x["hint"], x["mask"])
     other = torch.where(x["mask"][..., None], x["hint"], torch.randn_like(x["hint"]) * 5)
     assert torch.allclose(controlnet.encoder(other, x["mask"]), out, atol=1e-6)
+    missing = torch.where(x["mask"][..., None], x["hint"], float("nan"))  # a hint known on its keyframes only
+    assert torch.allclose(controlnet.encoder(missing, x["mask"]), out, atol=1e-6)
     fewer = x["mask"].clone()
     fewer[:, 4:] = False
     assert not torch.allclose(controlnet.encoder(x["hint"], fewer), out, atol=1e-4)
@@ -113,7 +115,7 @@ def test_control_loss_known_values():
     mask[0, 1, 0] = mask[1, 3, 0] = True
     assert control_loss(joints, hint, mask) == 0
     hint[0, 1, 0] = torch.tensor([0.3, 0.0, 0.4])  # squared error 0.25 over 2 entries x 3 axes
-    hint[:, :, 5] = 7.0  # uncontrolled entries: ignored
+    hint[:, :, 5] = float("nan")  # uncontrolled entries: ignored, even NaN
     assert control_loss(joints, hint, mask).item() == pytest.approx(0.25 / 6)
     assert control_loss(joints, hint, torch.zeros_like(mask)) == 0
 
@@ -154,6 +156,17 @@ def tiny_vae() -> MotionVAE:
     return MotionVAE({"latent_tokens": 2, "latent_dim": 8, "layers": 1, "heads": 2, "ff_dim": 16}).eval()
 
 
+class ForwardOnly(torch.nn.Module):
+    """Exposes only ``forward``, as DistributedDataParallel does (the runner wraps models with it)."""
+
+    def __init__(self, module: torch.nn.Module) -> None:
+        super().__init__()
+        self.module = module
+
+    def forward(self, *args, **kwargs):
+        return self.module(*args, **kwargs)
+
+
 def test_controlnet_loss_trains_only_the_controlnet_and_weights_the_control_term():
     base, vae = student().requires_grad_(False), tiny_vae().requires_grad_(False)
     controlnet = MotionControlNet(base, control_config())
@@ -165,7 +178,8 @@ def test_controlnet_loss_trains_only_the_controlnet_and_weights_the_control_term
               "text_mask": x["text_mask"]}
     args = (controlnet, base, vae, SCHEDULE, torch.randn(2, 2, 8), x["text_emb"], x["hint"], x["mask"], lengths)
     a = controlnet_loss(*args, control_weight=0.0, generator=torch.Generator().manual_seed(4), **kwargs)
-    b = controlnet_loss(*args, control_weight=2.0, generator=torch.Generator().manual_seed(4), **kwargs)
+    wrapped = (ForwardOnly(controlnet), *args[1:])
+    b = controlnet_loss(*wrapped, control_weight=2.0, generator=torch.Generator().manual_seed(4), **kwargs)
     assert torch.equal(a["latent"], b["latent"]) and torch.equal(a["control"], b["control"])
     assert b["total"].item() == pytest.approx((b["latent"] + 2.0 * b["control"]).item(), rel=1e-6)
     b["total"].backward()
@@ -184,7 +198,7 @@ def test_decode_joints_matches_the_numpy_recovery():
 
 
 def test_refinement_pulls_the_decoded_joints_to_the_hint():
-    vae = tiny_vae().requires_grad_(False)
+    vae = tiny_vae()  # trainable weights: the refinement must still leave them without gradients
     lengths = torch.tensor([12, 12])
     mean, std = torch.zeros(D), torch.full((D,), 0.1)
     target = decode_joints(vae, torch.randn(2, 2, 8), lengths, 12, mean, std, 1.0).detach()
@@ -196,6 +210,13 @@ def test_refinement_pulls_the_decoded_joints_to_the_hint():
                        realism_weight=0.0)
     after = control_loss(decode_joints(vae, z, lengths, 12, mean, std, 1.0), target, mask)
     assert after < 0.5 * before
+    assert all(p.grad is None for p in vae.parameters())
+    padded = mask.clone()
+    padded[:, 10:] = True  # controlled entries past the lengths below are ignored
+    short = torch.tensor([10, 10])
+    assert torch.equal(refine_latents(vae, z0, target, padded, short, mean=mean, std=std, latent_scale=1.0, steps=3),
+                       refine_latents(vae, z0, target, mask & (torch.arange(12) < 10)[None, :, None], short,
+                                      mean=mean, std=std, latent_scale=1.0, steps=3))
     tied = refine_latents(vae, z0, target, mask, lengths, mean=mean, std=std, latent_scale=1.0, steps=30, lr=0.1,
                           realism_weight=1e6)
     assert (tied - z0).abs().max() < (z - z0).abs().max()  # the realism term holds the latent near the sample
