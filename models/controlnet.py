@@ -200,13 +200,9 @@ def controlnet_loss(
     z0_hat = lcm_consistency_fn(schedule, out, z_t, t, student.config.prediction_type)
     latent = ((z0_hat - z0) ** 2).mean()
     mask = mask & lengths_to_mask(lengths, hint.shape[1]).to(mask.device)[..., None]
-    if control_weight > 0:
+    with torch.set_grad_enabled(torch.is_grad_enabled() and control_weight > 0):
         joints = decode_joints(vae, z0_hat, lengths, hint.shape[1], mean, std, student.config.latent_scale)
         control = control_loss(joints, hint, mask)
-    else:
-        with torch.no_grad():
-            joints = decode_joints(vae, z0_hat, lengths, hint.shape[1], mean, std, student.config.latent_scale)
-            control = control_loss(joints, hint, mask)
     return {"total": latent + control_weight * control, "latent": latent.detach(), "control": control.detach()}
 
 

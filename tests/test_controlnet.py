@@ -222,7 +222,7 @@ def test_refinement_pulls_the_decoded_joints_to_the_hint():
     assert (tied - z0).abs().max() < (z - z0).abs().max()  # the realism term holds the latent near the sample
 
 
-def test_controlled_sampling_is_seeded_and_reduces_to_motionlcm_at_initialisation():
+def test_controlled_sampling_reduces_to_motionlcm_at_initialisation():
     base = student()
     x = batch()
     controlled = ControlledStudent(base, MotionControlNet(base, control_config()), x["hint"], x["mask"])
