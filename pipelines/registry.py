@@ -104,6 +104,9 @@ FAMILIES: dict[str, ModelFamily] = {family.name: family for family in (
                         "sample.control_refine_realism"),
                 generator="controlnet_generator",
                 description="MotionLCM's ControlNet: one step, following a pelvis trajectory"),
+    ModelFamily("emdm", "pipelines.emdm_family", "emdm_rows", train_stages=("train_emdm",),
+                params=("sample.emdm_guidance",), generator="emdm_generator",
+                description="EMDM: a denoising-diffusion GAN in motion space, 10 steps"),
 )}
 
 

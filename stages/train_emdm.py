@@ -22,10 +22,9 @@ the discriminator and the generator's EMA).
 
 Conditions: ``text`` (the pooled caption embedding of the store's frozen encoder). ``action`` is a
 valid value of ``train_emdm.condition`` but not wired yet (the store has no action labels): it is
-an error for now. Multi-worker (DDP) training is not supported: the D step runs D twice and
-double-backpropagates for R1, which DDP's reducer does not allow, and :mod:`models.emdm` reads the
-networks' ``config``, which a DDP wrapper hides. ``ray.num_workers`` > 1 is therefore an error
-(``python -m stages.train_emdm ray.num_workers=1`` on a profile that sets more).
+an error for now. The stage trains on one Ray Train worker whatever ``ray.num_workers`` says (a
+note is printed): the D step runs D twice and double-backpropagates for R1, which DDP's reducer
+does not allow, and :mod:`models.emdm` reads the networks' ``config``, which a DDP wrapper hides.
 """
 
 from __future__ import annotations
@@ -46,7 +45,7 @@ from models.emdm import (
 )
 from pipelines.cli import repo_path
 from pipelines.feature_store import FeatureStore
-from pipelines.runner import Components, RayOptions, StepContext, TrainSpec
+from pipelines.runner import Components, StepContext, TrainSpec
 from pipelines.stage import TrainingStage, main
 
 #: Adam's betas for both networks (EMDM's and DDGAN's code).
@@ -57,7 +56,7 @@ SECTION_KEYS = ("condition", "num_steps", "lr_g", "lr_d", "ema_decay", "geometri
 #: Keys of ``train_emdm.model``: the network sizes (the rest of :class:`EMDMConfig` comes from the store
 #: and the training keys above).
 MODEL_KEYS = ("width", "layers", "heads", "ff_dim", "dropout", "activation", "norm_first", "z_dim", "mapping_layers",
-              "d_width", "d_layers", "d_heads", "d_ff_dim", "d_time_dim")
+              "d_width", "d_layers", "d_heads", "d_ff_dim", "d_time_dim", "patch_frames")
 CONDITIONS = ("text", "action")
 
 
@@ -175,10 +174,6 @@ def stage_config(params: dict[str, Any]) -> dict[str, Any]:
     """The stage's loop-config keys: absolute paths, the dataset statistics, the model and the losses."""
     cfg = params["train_emdm"]
     check_section(cfg)
-    ray = RayOptions.from_dict(params.get("ray"))
-    if not ray.in_process and ray.num_workers > 1:
-        raise ValueError(f"ray.num_workers: train_emdm trains on one worker (its GAN step is not DDP-safe), got "
-                         f"{ray.num_workers}; run it with ray.num_workers=1")
     store = FeatureStore(repo_path(params, "features.out"))
     return {
         "features_dir": str(store.path), "mean": store.mean.tolist(), "std": store.std.tolist(),
@@ -191,7 +186,7 @@ def stage_config(params: dict[str, Any]) -> dict[str, Any]:
 STAGE = TrainingStage(
     name="train_emdm", module=__name__, config=stage_config,
     spec=TrainSpec(build=build, dataset=dataset, step=step, collate=collate_trimmed),
-    inputs=("features_dir",), params=("train_emdm", "features.out", "paths", "ray"),
+    inputs=("features_dir",), params=("train_emdm", "features.out", "paths", "ray"), max_workers=1,
 )
 
 if __name__ == "__main__":

@@ -18,6 +18,7 @@ from models.emdm import (
     condition_dropout,
     d_adversarial_loss,
     discriminator_step_losses,
+    from_patches,
     g_adversarial_loss,
     generator_step_losses,
     geometric_losses,
@@ -26,6 +27,7 @@ from models.emdm import (
     q_sample_pairs,
     r1_penalty,
     sample_emdm,
+    to_patches,
 )
 
 pytestmark = pytest.mark.usefixtures("one_thread")  # tiny networks (tests/conftest.py)
@@ -234,8 +236,9 @@ def test_geometric_loss_zero_when_equal_positive_otherwise_and_ignores_padding(r
 # --------------------------------------------------------------------------------------------------
 
 
-def test_generator_ignores_padding_and_zeroes_it() -> None:
-    gen, _ = _nets()
+@pytest.mark.parametrize("patch", [1, 4])
+def test_generator_ignores_padding_and_zeroes_it(patch: int) -> None:
+    gen, _ = _nets(patch_frames=patch)
     gen.eval()
     g = _gen(5)
     x, z, cond = torch.randn(2, 6, D, generator=g), torch.randn(2, 4, generator=g), torch.randn(2, E, generator=g)
@@ -252,8 +255,9 @@ def test_generator_ignores_padding_and_zeroes_it() -> None:
     torch.testing.assert_close(alone, out[1:, :3], rtol=1e-5, atol=1e-5)
 
 
-def test_discriminator_ignores_padding() -> None:
-    _, disc = _nets()
+@pytest.mark.parametrize("patch", [1, 4])
+def test_discriminator_ignores_padding(patch: int) -> None:
+    _, disc = _nets(patch_frames=patch)
     g = _gen(6)
     x_t, x_next = torch.randn(2, 6, D, generator=g), torch.randn(2, 6, D, generator=g)
     cond = torch.randn(2, E, generator=g)
@@ -267,6 +271,20 @@ def test_discriminator_ignores_padding() -> None:
     torch.testing.assert_close(disc(*more, t, cond, lengths), logits, rtol=1e-5, atol=1e-5)
     assert not torch.allclose(disc(x_t, x_next, t, cond, torch.tensor([6, 3])), logits)  # a valid frame counts
     assert not torch.allclose(disc(x_t, x_next, t, -cond, lengths), logits)  # the condition counts
+
+
+def test_patches_round_trip_and_validity() -> None:
+    x = torch.arange(2 * 7 * 3, dtype=torch.float32).reshape(2, 7, 3)
+    valid = torch.tensor([[True] * 7, [True] * 5 + [False] * 2])
+    patches, token_valid = to_patches(x, valid, 4)
+    assert patches.shape == (2, 2, 12)
+    assert torch.equal(patches[0, 1, :9], x[0, 4:7].flatten()) and torch.equal(patches[0, 1, 9:], torch.zeros(3))
+    assert torch.equal(token_valid, torch.tensor([[True, True], [True, True]]))
+    back = from_patches(patches, 7, 4)
+    assert torch.equal(back[0], x[0]) and torch.equal(back[1, :5], x[1, :5])
+    assert torch.equal(back[1, 5:], torch.zeros(2, 3))
+    assert torch.equal(to_patches(x, torch.tensor([[True] * 7, [True] * 3 + [False] * 4]), 4)[1][1],
+                       torch.tensor([True, False]))
 
 
 def test_condition_dropout_rate_and_null_condition() -> None:
