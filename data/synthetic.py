@@ -11,7 +11,16 @@ downloading anything (DESIGN.md, "The embedded dataset"). Each motion is
 - realised by leg IK + forward kinematics with planted feet (:mod:`data.synthetic_motion`),
 - described by 3-5 paraphrased captions and, for long segments, span captions
   (:mod:`data.synthetic_text`),
-- labelled with the action class of its longest segment.
+- labelled, for statistics and previews, with the action class of its longest segment
+  (:attr:`SyntheticMotion.label`); its *dataset* action label (``actions.txt``,
+  :attr:`SyntheticMotion.action`) is set only for single-action motions (below).
+
+Single-action rule (the action-to-motion protocol needs unambiguous labels): a motion gets a
+dataset action label only when its program is exactly one segment **without** an upper-body
+action on top. A carrier with a carried action ("walks while waving") is left unlabelled, like
+every multi-action motion: the carried action changes what the motion looks like (its arms
+move as in the ``wave`` class while its legs walk), so neither class describes it alone. The
+idle lead-in and lead-out around the segment are not actions.
 
 Motion ``i`` depends only on ``(seed, i)`` (its own :class:`numpy.random.SeedSequence`), so
 the result does not depend on the number of worker processes. Mirrored copies (``M`` + id)
@@ -113,7 +122,7 @@ class SyntheticMotion:
         clip_id: file stem (``M``-prefixed for a mirrored copy).
         joints: (T, 22, 3) float32 global joint positions.
         captions: whole-clip and span captions.
-        label: action class.
+        label: action class of the longest segment (statistics, previews; every motion has one).
         segments: the actions in order, with their parameters.
         windows: [start, end) frames of each segment.
         steady: steady-speed frames of each locomotion segment (else None).
@@ -127,9 +136,14 @@ class SyntheticMotion:
     windows: list[tuple[int, int]]
     steady: list[tuple[int, int] | None]
 
+    @property
+    def action(self) -> str | None:
+        """The dataset action label: the segment's class for a single-action motion, else None."""
+        return single_action_label(self.segments)
+
     def clip(self) -> Clip:
-        """The motion as a dataset clip."""
-        return Clip(self.clip_id, self.captions, joints=self.joints, action=self.label)
+        """The motion as a dataset clip (action label only for single-action motions)."""
+        return Clip(self.clip_id, self.captions, joints=self.joints, action=self.action)
 
 
 def motion_id(index: int) -> str:
@@ -185,6 +199,13 @@ def _label(segments: Sequence[Segment], windows: Sequence[tuple[int, int]]) -> s
     """Action class of the longest segment."""
     lengths = [b - a for a, b in windows]
     return segments[int(np.argmax(lengths))].label
+
+
+def single_action_label(segments: Sequence[Segment]) -> str | None:
+    """The class of a one-segment program without an upper-body action on top, else None."""
+    if len(segments) == 1 and segments[0].upper is None:
+        return segments[0].label
+    return None
 
 
 def generate_motion(seed: int, index: int, config: SyntheticConfig) -> SyntheticMotion:
@@ -333,6 +354,7 @@ def dataset_stats(motions: Sequence[SyntheticMotion]) -> dict:
         "captions": sum(len(m.captions) for m in motions),
         "span_captions": sum(not c.is_whole_clip for m in motions for c in m.captions),
         "actions": {k: per_action[k] for k in sorted(per_action)},
+        "labelled_actions": dict(sorted(Counter(m.action for m in motions if m.action is not None).items())),
         "segments": dict(sorted(Counter(s.kind for m in motions for s in m.segments).items())),
         "vocabulary_size": len(words),
         "length_histogram": {"bin_edges": list(LENGTH_BINS), "counts": counts.tolist()},

@@ -1,14 +1,18 @@
 """Stage ``train_evaluator``: the T2M text-motion matching model every metric is measured with.
 
-``python -m stages.train_evaluator [key=value ...]`` trains, as two Ray Train jobs through the
-one runner (reference humanml3d_eval.md B.3):
+``python -m stages.train_evaluator [key=value ...]`` trains, as three Ray Train jobs through the
+one runner (reference humanml3d_eval.md B.3 for the first two):
 
 1. the movement autoencoder (conv encoder + decoder) on random ``movement_window``-frame windows,
    loss L1 + 0.001 sparsity + 0.001 smoothness -> ``artifacts/train_evaluator_movement/``
    (runner settings ``train_evaluator.movement_loop``);
 2. the text and motion encoders on (caption, cropped motion) pairs with the movement encoder
    frozen, contrastive loss with margin 10 and batch-shifted negatives ->
-   ``artifacts/train_evaluator/`` (runner settings ``train_evaluator.loop``).
+   ``artifacts/train_evaluator/`` (runner settings ``train_evaluator.loop``);
+3. the action recogniser of the action-to-motion protocol (a GRU over joint positions, HumanAct12
+   style; :mod:`pipelines.recogniser`) on random crops of the action-labelled training motions,
+   cross-entropy -> ``artifacts/train_evaluator_recogniser/`` (params ``train_evaluator.recogniser``,
+   runner settings ``train_evaluator.recogniser.loop``).
 
 The vocabulary (built from the training captions' word/POS tokens), the network sizes and the
 evaluator's own normalisation statistics travel in the saved model's config, so
@@ -29,6 +33,8 @@ from pipelines.checkpoint import load_final_model
 from pipelines.cli import artifacts_dir, repo_path, run_main
 from pipelines.evaluation import build_evaluator
 from pipelines.feature_store import FeatureStore
+from pipelines.recogniser import SPEC as RECOGNISER_SPEC
+from pipelines.recogniser import recogniser_config
 from pipelines.runner import Components, StepContext, TrainSpec
 from pipelines.stage import TrainingStage, loop_config, train
 
@@ -110,12 +116,18 @@ MATCHING = TrainingStage(
     spec=TrainSpec(build=build_matching, dataset=CaptionMotionPairs, step=matching_step),
     inputs=("features_dir", "movement_dir"),
 )
+RECOGNISER = TrainingStage(
+    name="train_evaluator_recogniser", module=__name__, params=PARAMS, config=recogniser_config,
+    spec=RECOGNISER_SPEC, inputs=("features_dir",), loop_group="train_evaluator.recogniser.loop",
+)
 
 
 def run(params: dict[str, Any]) -> Path:
-    """Train both parts; returns the evaluator's output directory."""
+    """Train the evaluator's two parts and the action recogniser; returns the evaluator's output directory."""
     train(MOVEMENT, params)
-    return train(MATCHING, params).out_dir
+    out = train(MATCHING, params).out_dir
+    train(RECOGNISER, params)
+    return out
 
 
 # --------------------------------------------------------------------------- sweeps

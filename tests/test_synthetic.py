@@ -145,6 +145,24 @@ def test_library_and_labels(motions):
     assert any(s.upper is not None for m in motions for s in m.segments)
 
 
+def test_only_single_action_motions_carry_a_dataset_label(motions):
+    """actions.txt labels are unambiguous: one segment, no upper-body action on top; others get none."""
+    labelled = [m for m in motions if m.action is not None]
+    for m in motions:
+        single = len(m.segments) == 1 and m.segments[0].upper is None
+        assert (m.action is not None) == single, (m.clip_id, m.segments)
+        assert m.clip().action == m.action
+        if single:
+            assert m.action == m.label == m.segments[0].label
+    assert 0.2 * len(motions) < len(labelled) < 0.6 * len(motions)
+    assert any(len(m.segments) == 1 and m.segments[0].upper is not None and m.action is None for m in motions)
+    originals = {m.clip_id: m.action for m in motions if not m.clip_id.startswith("M")}
+    assert all(m.action == originals[m.clip_id[1:]] for m in motions if m.clip_id.startswith("M"))
+    stats = dataset_stats(motions)
+    assert sum(stats["labelled_actions"].values()) == len(labelled)
+    assert stats["labelled_actions"] == {a: sum(m.action == a for m in labelled) for a in stats["labelled_actions"]}
+
+
 def test_lengths_are_within_bounds(motions):
     lengths = [len(m.joints) for m in motions]
     assert min(lengths) >= SMOKE.min_joint_frames and max(lengths) <= SMOKE.max_joint_frames
@@ -301,7 +319,7 @@ def test_same_seed_gives_byte_identical_files(tmp_path):
 
 
 @pytest.mark.slow
-def test_every_split_id_has_a_motion_and_captions(dataset):
+def test_every_split_id_has_a_motion_and_captions(dataset, motions):
     root, _ = dataset
     ids = {name: (root / f"{name}.txt").read_text().split() for name in SPLITS}
     everything = [i for name in SPLITS for i in ids[name]]
@@ -314,7 +332,8 @@ def test_every_split_id_has_a_motion_and_captions(dataset):
         assert {"M" + i for i in originals} == {i for i in ids[name] if i.startswith("M")}
         assert abs(len(originals) / SMOKE.num_motions - SMOKE.splits[name]) < 0.02
     actions = dict(line.split(",") for line in (root / "actions.txt").read_text().split())
-    assert set(actions) == set(everything) and set(actions.values()) <= set(LABELS)
+    single = {m.clip_id: m.action for m in motions if m.action is not None}  # single-action motions only
+    assert actions == single and set(actions) < set(everything) and set(actions.values()) <= set(LABELS)
 
 
 @pytest.mark.slow
