@@ -4,6 +4,8 @@ Used by every generator's training stage. Each access picks one of the item's ca
 and, when the item is longer than ``max_frames``, a random ``max_frames`` window, as the
 reference loaders do. Randomness comes from the process-global torch RNG, which the training
 runner seeds per rank and saves in its checkpoints, so a resumed run draws the same pairs.
+With ``word_tokens`` > 0 an item also carries the chosen caption's word-token states (no extra
+random draw: the draws, and so every pair served, are the same as without them).
 """
 
 from __future__ import annotations
@@ -24,15 +26,24 @@ class MotionTextDataset(Dataset):
     Each element is a dict of ``motion`` (P, D) float32 normalised with ``mean``/``std`` and
     zero past ``length``; ``length`` (int64); ``text`` (E,) pooled caption embedding; ``index``.
     P is ``max_frames``; :func:`collate_trimmed` cuts a batch to its longest item.
+
+    ``word_tokens`` > 0 adds, for the same caption as ``text``, its word-token states ``tokens``
+    (word_tokens, H) float32 zero-padded and ``token_mask`` (word_tokens,) bool True on the real
+    tokens (:func:`pad_tokens`; a caption with more tokens is an error);
+    :func:`collate_trimmed_words` also cuts them to the batch's longest caption.
     """
 
-    def __init__(self, store_dir: str | Path, split: str, mean: np.ndarray, std: np.ndarray, max_frames: int) -> None:
+    def __init__(self, store_dir: str | Path, split: str, mean: np.ndarray, std: np.ndarray, max_frames: int,
+                 word_tokens: int = 0) -> None:
+        if isinstance(word_tokens, bool) or not isinstance(word_tokens, int) or word_tokens < 0:
+            raise ValueError(f"word_tokens must be an integer >= 0, got {word_tokens!r}")
         self.items = read_split(Path(store_dir) / f"{split}.parquet")
         if not self.items:
             raise ValueError(f"{store_dir}/{split}.parquet has no items")
         self.mean = np.asarray(mean, np.float32)
         self.std = np.asarray(std, np.float32)
         self.max_frames = max_frames
+        self.word_tokens = word_tokens
 
     def __len__(self) -> int:
         return len(self.items)
@@ -56,12 +67,16 @@ class MotionTextDataset(Dataset):
         caption = int(torch.randint(0, len(item.captions), ()).item())
         start = int(torch.randint(0, max(0, item.length - self.max_frames) + 1, ()).item())
         motion, length = self.window(index, start)
-        return {
+        out = {
             "motion": torch.from_numpy(motion),
             "length": torch.tensor(length),
             "text": torch.from_numpy(item.text_pooled[caption].astype(np.float32)),
             "index": torch.tensor(index),
         }
+        if self.word_tokens:
+            tokens, mask = pad_tokens([np.asarray(item.text_tokens[caption], np.float32)], self.word_tokens)
+            out |= {"tokens": tokens[0], "token_mask": mask[0]}
+        return out
 
 
 def pad_tokens(tokens: list[np.ndarray], max_tokens: int | None = None) -> tuple[torch.Tensor, torch.Tensor]:
@@ -90,6 +105,16 @@ def collate_trimmed(items: list[dict[str, torch.Tensor]]) -> dict[str, torch.Ten
     """
     batch = default_collate(items)
     batch["motion"] = batch["motion"][:, : int(batch["length"].max())]
+    return batch
+
+
+def collate_trimmed_words(items: list[dict[str, torch.Tensor]]) -> dict[str, torch.Tensor]:
+    """:func:`collate_trimmed`, and ``tokens`` (B, W, H) / ``token_mask`` (B, W) cut to the batch's longest
+    caption (at least 1 position). Only padding is removed: a model that masks padded tokens gives the same."""
+    batch = collate_trimmed(items)
+    if "token_mask" in batch:
+        n = max(1, int(batch["token_mask"].sum(1).max()))
+        batch["tokens"], batch["token_mask"] = batch["tokens"][:, :n], batch["token_mask"][:, :n]
     return batch
 
 

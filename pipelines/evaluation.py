@@ -26,6 +26,16 @@ random frames at the row's density); their motions are also scored by the contro
 (``traj_err_*``, ``loc_err_*``, ``avg_err_m``) on the controlled entries. The frames are drawn from a
 stream seeded by the density, so every row of one density (a ControlNet and the uncontrolled
 reference scored against its hints) is judged on the same keyframes.
+
+A generator too slow for the whole test set (e.g. a 1000-step DDPM on CPU) may carry an optional
+attribute ``eval_items`` = K (an int, or None for no bound; no other row sets it): in each replication
+it answers only the first K captions of the draw (the draw is shuffled, so a fresh random subset each
+time, the same one for every row with the same K), and its R-precision, MM-Dist, FID (against the
+same reference statistics as every row), Diversity (at most K - 1 pairs) and physical measures are
+computed on those K motions. Its MultiModality is not measured (it would cost ``mm_repeats`` times
+the row itself), and its table row records ``eval_items``. FID from K samples is biased upward: such a
+row compares only with rows of the same K. K must hold one R-precision group; K >= the test set is
+no bound (the full protocol).
 """
 
 from __future__ import annotations
@@ -33,7 +43,7 @@ from __future__ import annotations
 import time
 import zlib
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -290,6 +300,26 @@ def row_rng(cfg: EvalConfig, r: int, row: str) -> np.random.Generator:
     return np.random.default_rng([cfg.seed, r, zlib.crc32(row.encode())])
 
 
+def eval_items(gen: Generator, n: int, cfg: EvalConfig) -> int | None:
+    """The subset size K a generator's ``eval_items`` asks for on a draw of ``n`` captions (module
+    docstring), or None for the full protocol (no attribute, None, or K >= n)."""
+    k = getattr(gen, "eval_items", None)
+    if k is None:
+        return None
+    if isinstance(k, bool) or not isinstance(k, int) or k < max(cfg.group_size, 2):
+        raise ValueError(f"{gen.name}: eval_items must be an integer >= group_size ({cfg.group_size}), got {k!r}")
+    return None if k >= n else k
+
+
+def subset_reference(ref: Reference, k: int) -> Reference:
+    """The first ``k`` captions of a replication's draw (a random subset: the draw is shuffled) with their
+    caption embeddings, and the same FID reference statistics."""
+    d, index = ref.draw, np.arange(k)
+    lengths = d.lengths[:k]
+    sub = Draw(d.text.select(index), d.tokens[:k], lengths, d.real[:k, : int(lengths.max())])
+    return Reference(sub, ref.text_emb[:k], ref.ref_mu, ref.ref_sigma)
+
+
 def _row_metrics(name: str, raw: np.ndarray, ref: Reference, embedder: MotionEmbedder, skeleton: Skeleton,
                  cfg: EvalConfig, rng: np.random.Generator) -> dict[str, float]:
     motion_emb = embedder.motions(raw, ref.draw.lengths)
@@ -310,13 +340,18 @@ def replicate(ref: Reference, r: int, embedder: MotionEmbedder, skeleton: Skelet
         result[rec.name]["MPJPE_mm"] = mpjpe_mm(d.real, raw, d.lengths, skeleton.joints_num)
     for gen in generators:
         rng = row_rng(cfg, r, gen.name)
-        hint = _hint_of(gen, d, cfg, r, skeleton)
-        raw = denormalise(sample_rows(gen, d.text, d.lengths, r, hint, np.arange(len(d.lengths))), mean, std)
-        result[gen.name] = _row_metrics(gen.name, raw, ref, embedder, skeleton, cfg, rng)
+        k = eval_items(gen, len(d.lengths), cfg)
+        g_ref, g_cfg = (ref, cfg) if k is None else (subset_reference(ref, k),
+                                                     replace(cfg, diversity_times=min(cfg.diversity_times, k - 1)))
+        g_draw = g_ref.draw
+        hint = _hint_of(gen, g_draw, cfg, r, skeleton)
+        raw = denormalise(sample_rows(gen, g_draw.text, g_draw.lengths, r, hint, np.arange(len(g_draw.lengths))),
+                          mean, std)
+        result[gen.name] = _row_metrics(gen.name, raw, g_ref, embedder, skeleton, g_cfg, rng)
         if hint is not None:
             joints = recover_from_ric(raw, skeleton.joints_num)
             result[gen.name] |= M.control_errors(joints, hint.joints, hint.mask)
-        if gen.stochastic and cfg.mm_repeats > cfg.mm_times:
+        if gen.stochastic and k is None and cfg.mm_repeats > cfg.mm_times:
             result[gen.name]["MultiModality"] = multimodality(gen, d, embedder, mean, std, cfg, r, rng, hint)
     return result
 
@@ -349,4 +384,7 @@ def evaluate(refs: Sequence[Reference], items: Sequence[StoredItem], mean: np.nd
         hint = _hint_of(gen, timing_draw, cfg, cfg.replications, skeleton)
         table[gen.name].update(time_generator(gen, timing_draw, cfg.timing_sentences, hint))
         table[gen.name]["NFE"] = gen.nfe
+        k = eval_items(gen, len(refs[0].draw.lengths), cfg) if refs else None
+        if k is not None:
+            table[gen.name]["eval_items"] = k
     return table
