@@ -78,6 +78,13 @@ Choices where the paper (or its code) is ambiguous or where we depart from it, e
    zeroed on input and output, and patch boundaries sit at multiples of P from frame 0, so the valid
    frames' outputs do not depend on the amount of padding. At 20 fps motion is smooth over 4
    frames; the small CPU profile uses P = 4 to fit its time budget, the ``paper`` profile P = 1.
+10. Input skip (``input_skip``, ours; off in the paper): ``x0_hat = G_out + s_t * x_{t+1}`` with a
+   learned scalar ``s_t`` per step, initialised to ``sqrt(alpha_bar_{t+1})``: the least-squares
+   linear estimate of x0 from ``x_{t+1}`` for unit-variance data (the features are normalised), as
+   EDM's c_skip (Karras et al. 2022). Near the data (small t) x0 is almost ``x_{t+1}``: the paper's
+   G must carry every one of the D feature values through its width-h tokens to reproduce it, which
+   its h = 1024 > 263 allows and a small CPU width (or P D > h with patches) does not. The skip
+   carries it around the network, which then models the correction.
 """
 
 from __future__ import annotations
@@ -258,6 +265,8 @@ class EMDMConfig:
     ``z_dim`` (64) through ``mapping_layers`` (5) Linear+LeakyReLU layers. Discriminator: ``d_*``
     (a small masked transformer, module docstring item 4; no dropout), ``d_time_dim`` (DDGAN's 128).
     ``patch_frames``: frames per token of G and D (module docstring item 9; the paper: 1).
+    ``d_condition``: False gives D no condition (its condition token is 0): naive DDGAN (EMDM Table D8).
+    ``input_skip``: add a learned per-step multiple of x_{t+1} to G's output (module docstring item 10).
     Training: ``p_uncond`` (condition dropout, 0.1), ``r1_gamma`` (0.02), ``r1_interval`` (lazy R1
     every k steps, scaled by k), ``geo_weight`` R (None: 100 for text, 1 for action), ``geo_lambda``.
     Schedule: ``num_steps``, ``beta_min``, ``beta_max``. Sampling: ``guidance`` (2.5).
@@ -282,6 +291,8 @@ class EMDMConfig:
     d_ff_dim: int = 512
     d_time_dim: int = 128
     patch_frames: int = 1
+    d_condition: bool = True
+    input_skip: bool = False
     p_uncond: float = 0.1
     r1_gamma: float = 0.02
     r1_interval: int = 15
@@ -423,6 +434,8 @@ class EMDMGenerator(nn.Module):
             cfg.layers, h, cfg.heads, cfg.ff_dim, cfg.dropout, cfg.activation, cfg.norm_first
         )
         self.frame_out = nn.Linear(h, cfg.patch_frames * cfg.feature_dim)
+        self.skip = (nn.Parameter(cfg.make_schedule().alphas_cumprod[1:].sqrt().float()) if cfg.input_skip
+                     else None)
 
     def condition_tokens(self, cond: Tensor, drop_cond: Tensor | None = None) -> Tensor:
         """(B, h) condition tokens; rows where ``drop_cond`` (B,) bool is True get the null token."""
@@ -464,6 +477,8 @@ class EMDMGenerator(nn.Module):
         for layer in self.layers:
             tokens = layer(tokens, padding)
         out = from_patches(self.frame_out(tokens[:, _PREFIX_G:]), n, self.config.patch_frames)
+        if self.skip is not None:
+            out = out + self.skip[steps].to(out.dtype)[:, None, None] * x_next
         return torch.where(valid[..., None], out, 0.0)
 
 
@@ -483,7 +498,8 @@ class EMDMDiscriminator(nn.Module):
         h, td = cfg.d_width, cfg.d_time_dim
         self.frame_in = nn.Linear(2 * cfg.patch_frames * cfg.feature_dim, h)
         self.time_mlp = nn.Sequential(nn.Linear(td, td), nn.LeakyReLU(0.2), nn.Linear(td, h))
-        self.cond_embed = ConditionEmbedding(cfg.condition, h, cfg.text_dim, cfg.num_actions)
+        self.cond_embed = (ConditionEmbedding(cfg.condition, h, cfg.text_dim, cfg.num_actions)
+                           if cfg.d_condition else None)
         self.pos_encoding = PositionalEncoding(h, "sinusoidal")
         self.layers = _transformer_layers(cfg.d_layers, h, cfg.d_heads, cfg.d_ff_dim, 0.0, "gelu", False)
         self.head = nn.Sequential(nn.Linear(h, h), nn.LeakyReLU(0.2), nn.Linear(h, 1))
@@ -496,7 +512,9 @@ class EMDMDiscriminator(nn.Module):
         pair, token_valid = to_patches(torch.cat([x_t, x_next], dim=-1), valid, self.config.patch_frames)
         frames = self.frame_in(pair)
         time = timestep_embedding(steps, self.config.d_time_dim, flip_sin_to_cos=False).to(frames.dtype)
-        prefix = torch.stack([self.time_mlp(time), self.cond_embed(cond).to(frames.dtype)], dim=1)
+        time = self.time_mlp(time)
+        condition = time.new_zeros(time.shape) if self.cond_embed is None else self.cond_embed(cond).to(frames.dtype)
+        prefix = torch.stack([time, condition], dim=1)
         tokens = self.pos_encoding(torch.cat([prefix, frames], dim=1))
         padding = torch.cat([valid.new_zeros(b, _PREFIX_D), ~token_valid], dim=1)
         for layer in self.layers:

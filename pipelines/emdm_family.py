@@ -4,8 +4,10 @@
 - :class:`EMDMGeneratorRow`: EMDM's sampler (Alg. 1) behind the :class:`models.generator.Generator`
   interface: T steps, a fresh z per step, classifier-free guidance with the unconditional and
   conditional passes batched into one forward.
-- :func:`emdm_rows`, :func:`emdm_generator`: the registry's entries (``pipelines/registry.py``); the
-  guidance scale is ``sample.emdm_guidance`` (EMDM's text-to-motion setting: 2.5).
+- :class:`EMDMActionRow`: the same sampler conditioned on action labels, behind
+  :class:`pipelines.action_evaluation.ActionGenerator` (``train_emdm_action``'s generator).
+- :func:`emdm_rows`, :func:`emdm_generator`, :func:`emdm_action_rows`: the registry's entries
+  (``pipelines/registry.py``); the guidance scale is ``sample.emdm_guidance`` (EMDM's setting: 2.5).
 
 NFE counts network evaluations per sample: ``2 T`` with guidance (the two passes run as one batched
 forward, but each sample is evaluated twice, as MLD's rows count it), ``T`` at guidance 1.
@@ -13,6 +15,7 @@ forward, but each sample is evaluated twice, as MLD's rows count it), ``T`` at g
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -27,6 +30,7 @@ if TYPE_CHECKING:  # annotations only: the registry imports this module, not the
     from pipelines.registry import EvalContext, GenerateOptions
 
 TRAIN_STAGE = "train_emdm"
+ACTION_STAGE = "train_emdm_action"
 
 
 def load_emdm(out_dir: Path, use_ema: bool = True) -> tuple[EMDMGenerator, EMDMSchedule, dict[str, Any]]:
@@ -61,6 +65,35 @@ class EMDMGeneratorRow:
         out = sample_emdm(self.generator, self.schedule, cond, torch.as_tensor(np.asarray(lengths, np.int64)),
                           self.guidance, rng)
         return out.float().cpu().numpy()
+
+
+class EMDMActionRow:
+    """EMDM conditioned on action labels: ``T`` steps from noise, guided on x0 (Eq. 13)."""
+
+    stochastic = True
+
+    def __init__(self, name: str, generator: EMDMGenerator, schedule: EMDMSchedule, guidance: float,
+                 classes: Sequence[str]) -> None:
+        if generator.config.condition != "action" or generator.config.num_actions != len(classes):
+            raise ValueError(f"{name}: the generator is conditioned on {generator.config.condition!r} with "
+                             f"{generator.config.num_actions} actions, not on the {len(classes)} action classes")
+        self.name, self.generator, self.schedule = name, generator.eval(), schedule
+        self.guidance, self.classes = float(guidance), tuple(classes)
+        self.nfe = schedule.num_steps * (2 if self.guidance != 1.0 else 1)
+
+    @torch.inference_mode()
+    def sample_actions(self, action_ids: np.ndarray, lengths: np.ndarray, seed: int) -> np.ndarray:
+        rng = torch.Generator().manual_seed(seed)
+        out = sample_emdm(self.generator, self.schedule, torch.as_tensor(np.asarray(action_ids, np.int64)),
+                          torch.as_tensor(np.asarray(lengths, np.int64)), self.guidance, rng)
+        return out.float().cpu().numpy()
+
+
+def emdm_action_rows(ctx: EvalContext) -> list[EMDMActionRow]:
+    """``EMDM-action``: the action-conditioned generator of ``train_emdm_action`` with ``sample.emdm_guidance``."""
+    generator, schedule, config = load_emdm(ctx.trained(ACTION_STAGE))
+    return [EMDMActionRow("EMDM-action", generator, schedule, ctx.params["sample"]["emdm_guidance"],
+                          config["classes"])]
 
 
 def _emdm(ctx: EvalContext, guidance: float) -> EMDMGeneratorRow:

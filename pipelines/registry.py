@@ -60,7 +60,8 @@ class ModelFamily:
     Attributes:
         name: ``stages.generate --model`` name, DVC stage ``eval_<name>``, folder ``artifacts/eval/<name>``.
         module: the module holding the functions below.
-        rows: function name in ``module``: ``(EvalContext) -> list of Generator / Reconstructor``.
+        rows: function name in ``module``: ``(EvalContext) -> list of Generator / Reconstructor``, or of
+            :class:`pipelines.action_evaluation.ActionGenerator` (scored by the action-to-motion protocol).
         train_stages: training stages whose outputs the rows load (the eval stage's data deps).
         params: params keys the rows read (beyond ``stages/evaluate.py``'s own).
         generator: function name in ``module``: ``(EvalContext, GenerateOptions) -> Generator``, or None.
@@ -107,6 +108,13 @@ FAMILIES: dict[str, ModelFamily] = {family.name: family for family in (
     ModelFamily("emdm", "pipelines.emdm_family", "emdm_rows", train_stages=("train_emdm",),
                 params=("sample.emdm_guidance",), generator="emdm_generator",
                 description="EMDM: a denoising-diffusion GAN in motion space, 10 steps"),
+    ModelFamily("emdm-action", "pipelines.emdm_family", "emdm_action_rows", train_stages=("train_emdm_action",),
+                params=("sample.emdm_guidance",),
+                description="EMDM conditioned on action labels: the action-to-motion protocol"),
+    ModelFamily("motiondiffuse", "pipelines.motiondiffuse_family", "motiondiffuse_rows",
+                train_stages=("train_motiondiffuse",), params=("sample.motiondiffuse_ddpm_items",),
+                generator="motiondiffuse_generator",
+                description="MotionDiffuse: DDPM with a linear-attention transformer, 1000 steps (and DDIM 10)"),
 )}
 
 

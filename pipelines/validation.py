@@ -2,8 +2,9 @@
 
 Sweeps rank trials by what a user cares about, not by training loss: :func:`generator_scores`
 runs one replication of the evaluation protocol (:mod:`pipelines.evaluation`) on the ``val`` split
-with the trained evaluator, and :func:`motionlcm_scores` is ``distill_lcm``'s sweep hook (its
-one-step FID and R@3). Imported only when sweeping, so the training stages do not depend on it.
+with the trained evaluator; :func:`motionlcm_scores` is ``distill_lcm``'s sweep hook (its
+one-step FID and R@3) and :func:`emdm_scores` ``train_emdm``'s (its T-step FID and R@3). Imported
+only when sweeping, so the training stages do not depend on it.
 """
 
 from __future__ import annotations
@@ -14,9 +15,11 @@ from typing import Any
 import torch
 
 from data.skeleton import get_skeleton
+from models.emdm import EMDMConfig, EMDMGenerator
 from models.generator import Generator
 from models.mld import MLDConfig, MLDDenoiser
 from pipelines.cli import artifacts_dir, repo_path
+from pipelines.emdm_family import EMDMGeneratorRow
 from pipelines.evaluation import EvalConfig, evaluate, load_evaluator, references
 from pipelines.feature_store import FeatureStore
 from pipelines.mld_family import MotionLCMGenerator, load_mld, load_vae
@@ -45,3 +48,15 @@ def motionlcm_scores(params: dict[str, Any], loop_config: dict[str, Any], state:
                                    schedule, 1, params["sample"]["motionlcm_guidance"])
     with torch.inference_mode():
         return generator_scores(params, generator)
+
+
+def emdm_scores(params: dict[str, Any], loop_config: dict[str, Any], state: dict[str, Any]) -> dict[str, float]:
+    """A ``train_emdm`` trial's generator (its EMA weights when kept), sampled in its T steps with
+    ``sample.emdm_guidance``, scored on the validation split."""
+    model = EMDMConfig(**loop_config["model"])
+    generator = EMDMGenerator(model)
+    generator.load_state_dict(state.get("ema", {}).get("generator", {}).get("module") or state["models"]["generator"])
+    row = EMDMGeneratorRow(f"EMDM-{model.num_steps}", generator.eval(), model.make_schedule(),
+                           params["sample"]["emdm_guidance"])
+    with torch.inference_mode():
+        return generator_scores(params, row)

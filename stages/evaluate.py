@@ -10,6 +10,10 @@
   ``<key>_ci`` for each replicated metric. A metric that does not apply to a row is absent.
 - ``samples/<row>_<k>.gif``: the fixed prompts of ``evaluate.samples`` for the chosen rows.
 
+A family whose rows are action-conditioned (:class:`pipelines.action_evaluation.ActionGenerator`)
+is scored by the action-to-motion protocol instead (``Real-action`` and its rows: recogniser
+Accuracy, FID, Diversity, MultiModality), with the action recogniser the evaluator stage trains.
+
 ``<name>`` is ``real`` or a family of the model registry (:mod:`pipelines.registry`). ``real``
 computes the protocol's draws and the evaluator's embeddings of the captions and of the reference
 motions once (``references.npz``, with the ``Real`` row and ``meta.json``); every family's stage
@@ -31,6 +35,7 @@ from data.atomic import atomic_directory
 from data.render import render_animation
 from data.skeleton import get_skeleton
 from models.generator import Generator, Reconstructor
+from pipelines.action_evaluation import ActionGenerator, evaluate_action_rows, load_recogniser
 from pipelines.cli import artifacts_dir, repo_path, run_main
 from pipelines.evaluation import EvalConfig, evaluate, load_evaluator, load_references, references, save_references
 from pipelines.registry import EvalContext, family
@@ -39,6 +44,8 @@ REAL = "real"
 #: Params every evaluation stage reads; a family's stage also reads its registry entry's ``params``.
 PARAMS = ("evaluate", "features.out", "data.name", "data.skeleton", "paths.artifacts")
 REFERENCES = "references.npz"
+#: The evaluator stage's output holding the action recogniser.
+RECOGNISER = "train_evaluator_recogniser"
 
 
 def eval_config(section: dict[str, Any]) -> EvalConfig:
@@ -84,8 +91,16 @@ def run(name: str, params: dict[str, Any]) -> dict[str, dict[str, float]]:
             (tmp / "meta.json").write_text(json.dumps(meta, indent=2) + "\n")
             (tmp / "metrics.json").write_text(json.dumps(table, indent=2) + "\n")
         return table
-    refs = load_references(artifacts / "eval" / REAL / REFERENCES, test, cfg)
     rows = family(name).build_rows(ctx)
+    actions = [row for row in rows if isinstance(row, ActionGenerator)]
+    if actions:
+        table = evaluate_action_rows(actions, ctx.store, load_recogniser(ctx.trained(RECOGNISER)), cfg.replications,
+                                     cfg.seed, diversity_times=cfg.diversity_times, mm_times=cfg.mm_times,
+                                     unit_length=cfg.unit_length)
+        with atomic_directory(out) as tmp:
+            (tmp / "metrics.json").write_text(json.dumps(table, indent=2) + "\n")
+        return table
+    refs = load_references(artifacts / "eval" / REAL / REFERENCES, test, cfg)
     generators = [row for row in rows if isinstance(row, Generator)]
     reconstructors = [row for row in rows if isinstance(row, Reconstructor) and not isinstance(row, Generator)]
     table = evaluate(refs, test, ctx.store.mean, ctx.store.std, embedder, skeleton, cfg, generators, reconstructors)
@@ -109,8 +124,9 @@ def main(argv: Sequence[str] | None = None) -> None:
 
     def run_and_print(params: dict[str, Any]) -> None:
         table = run(name, params)
-        print(f"eval_{name}: " + "; ".join(f"{row} R@3 {m['R_precision_top3']:.3f} FID {m['FID']:.3f}"
-                                           for row, m in table.items()))
+        print(f"eval_{name}: " + "; ".join(
+            f"{row} " + (f"accuracy {m['Accuracy']:.3f}" if "Accuracy" in m else f"R@3 {m['R_precision_top3']:.3f}")
+            + f" FID {m['FID']:.3f}" for row, m in table.items()))
 
     run_main(f"eval_{name}", run_and_print, keys, overrides)
 

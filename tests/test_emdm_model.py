@@ -273,6 +273,32 @@ def test_discriminator_ignores_padding(patch: int) -> None:
     assert not torch.allclose(disc(x_t, x_next, t, -cond, lengths), logits)  # the condition counts
 
 
+def test_input_skip_adds_a_per_step_multiple_of_the_input_starting_at_sqrt_alpha_bar() -> None:
+    plain, _ = _nets()
+    skipped, _ = _nets(input_skip=True)
+    schedule = skipped.config.make_schedule()
+    torch.testing.assert_close(skipped.skip, schedule.alphas_cumprod[1:].sqrt().float())
+    g = _gen(8)
+    x, z, cond = torch.randn(2, 6, D, generator=g), torch.randn(2, 4, generator=g), torch.randn(2, E, generator=g)
+    t, lengths = torch.tensor([0, 9]), torch.tensor([6, 4])
+    with torch.no_grad():
+        skipped.skip[0], skipped.skip[9] = 2.0, -1.0
+    out, base = skipped(x, t, z, cond, lengths), plain(x, t, z, cond, lengths)
+    torch.testing.assert_close(out[0], base[0] + 2.0 * x[0])
+    torch.testing.assert_close(out[1, :4], base[1, :4] - x[1, :4])
+    assert torch.equal(out[1, 4:], torch.zeros(2, D))
+
+
+def test_naive_ddgan_discriminator_ignores_the_condition() -> None:
+    _, disc = _nets(d_condition=False)
+    g = _gen(7)
+    x_t, x_next = torch.randn(2, 6, D, generator=g), torch.randn(2, 6, D, generator=g)
+    cond, t, lengths = torch.randn(2, E, generator=g), torch.tensor([0, 9]), torch.tensor([6, 4])
+    logits = disc(x_t, x_next, t, cond, lengths)
+    torch.testing.assert_close(disc(x_t, x_next, t, -cond, lengths), logits, rtol=0, atol=0)
+    assert not any("cond_embed" in name for name, _ in disc.named_parameters())
+
+
 def test_patches_round_trip_and_validity() -> None:
     x = torch.arange(2 * 7 * 3, dtype=torch.float32).reshape(2, 7, 3)
     valid = torch.tensor([[True] * 7, [True] * 5 + [False] * 2])

@@ -16,9 +16,14 @@ import numpy as np
 import pytest
 import torch
 
+from models.emdm import EMDMConfig, EMDMGenerator
 from models.generator import Generator, TextBatch
 from pipelines import checkpoint as ckpt
-from pipelines.emdm_family import EMDMGeneratorRow, emdm_generator, emdm_rows, load_emdm
+from pipelines import emdm_training
+from pipelines.action_evaluation import ActionGenerator
+from pipelines.emdm_family import EMDMActionRow, EMDMGeneratorRow, emdm_generator, emdm_rows, load_emdm
+from pipelines.feature_store import FeatureStore
+from pipelines.recogniser import action_classes, labelled_items
 from pipelines.registry import EvalContext, GenerateOptions
 from pipelines.runner import StepContext, run_training
 from pipelines.stage import loop_config, ray_options, train
@@ -29,7 +34,8 @@ pytestmark = pytest.mark.usefixtures("one_thread")  # tiny networks (tests/conft
 FIXTURES = Path(__file__).parent / "fixtures" / "humanml3d"
 TINY_MODEL = {"width": 16, "layers": 1, "heads": 2, "ff_dim": 32, "dropout": 0.0, "activation": "selu",
               "norm_first": False, "z_dim": 4, "mapping_layers": 2, "d_width": 16, "d_layers": 1, "d_heads": 2,
-              "d_ff_dim": 16, "d_time_dim": 8, "patch_frames": 1}
+              "d_ff_dim": 16, "d_time_dim": 8, "patch_frames": 1,
+              "d_condition": True, "input_skip": False}
 LOOP = {"seed": 0, "batch_size": 8, "max_steps": 6, "grad_clip": 1.0, "lr_schedule": "constant", "warmup_steps": 0,
         "min_lr_ratio": 0.0, "log_every": 3, "num_data_workers": 0, "length_buckets": 0}
 
@@ -58,7 +64,6 @@ def params(small_store) -> dict[str, Any]:
 
 @pytest.mark.parametrize(("change", "key"), [
     ({"condition": "audio"}, "train_emdm.condition"),
-    ({"condition": "action"}, "train_emdm.condition"),
     ({"lr_d": 0.0}, "train_emdm.lr_d"),
     ({"r1_interval": 1.5}, "train_emdm.r1_interval"),
     ({"p_uncond": 1.5}, "train_emdm.p_uncond"),
@@ -86,7 +91,7 @@ def test_more_than_one_worker_runs_on_one(capsys: pytest.CaptureFixture[str]) ->
 def test_a_good_section_reaches_the_store(tmp_path: Path) -> None:
     params = {"train_emdm": emdm_section(), "features": {"out": str(tmp_path / "no_store")}, "ray": {}}
     with pytest.raises(FileNotFoundError, match="no feature store"):
-        train_emdm.stage_config(params)
+        emdm_training.stage_config(params)
 
 
 # --------------------------------------------------------------------------------------------------
@@ -109,16 +114,16 @@ def test_one_gan_step_updates_both_networks_and_r1_only_when_due() -> None:
     mean, std = np.load(FIXTURES / "Mean.npy"), np.load(FIXTURES / "Std.npy")
     section = emdm_section(r1_interval=3)
     config = {"mean": mean.tolist(), "std": std.tolist(), "lr_g": 1e-3, "lr_d": 1e-3, "ema_decay": 0.9,
-              "model": train_emdm.model_config(section, 263, 8)}
+              "model": emdm_training.model_config(section, 263, 8)}
     assert config["model"]["geo_weight"] is None and "guidance" not in config["model"]
-    comps = train_emdm.build(config)
+    comps = emdm_training.build(config)
     assert set(comps.models) == {"generator", "discriminator"} and set(comps.optimizers) == {"g", "d"}
     assert all(opt.defaults["betas"] == (0.5, 0.9) for opt in comps.optimizers.values())
     assert comps.ema == {"generator": 0.9} and comps.frozen["schedule"].num_steps == 10
     ctx = StepContext(config, comps.models, comps.optimizers, {}, comps.frozen, torch.device("cpu"), 0, 1, 1.0)
     before = {name: {k: p.detach().clone() for k, p in m.named_parameters()} for name, m in comps.models.items()}
     batch = _batch()
-    first = train_emdm.step(batch, ctx)  # step 0: R1 due
+    first = emdm_training.step(batch, ctx)  # step 0: R1 due
     assert {"loss", "g_adv", "geo", "recon", "pos", "vel", "foot", "d_loss", "d_real", "d_fake", "r1"} == set(first)
     assert all(torch.isfinite(v) and v.ndim == 0 and not v.requires_grad for v in first.values())
     assert first["r1"] > 0 and first["loss"] > 100 * first["geo"] - 1e-3  # R = 100 for text, plus adv > 0
@@ -128,12 +133,52 @@ def test_one_gan_step_updates_both_networks_and_r1_only_when_due() -> None:
         assert set(before[name]) - set(changed) <= {"null_cond"}, name  # null_cond: only if a caption was dropped
         assert all(p.requires_grad for p in model.parameters())  # D unfrozen again after the G update
     ctx.step = 1
-    assert "r1" not in train_emdm.step(batch, ctx)
+    assert "r1" not in emdm_training.step(batch, ctx)
     ctx.step = 3
-    assert "r1" in train_emdm.step(batch, ctx)
+    assert "r1" in emdm_training.step(batch, ctx)
     ctx.world_size = 2
     with pytest.raises(NotImplementedError, match="one worker"):
-        train_emdm.step(batch, ctx)
+        emdm_training.step(batch, ctx)
+
+
+def test_action_condition_trains_on_labels_with_r_one() -> None:
+    torch.manual_seed(0)
+    mean, std = np.load(FIXTURES / "Mean.npy"), np.load(FIXTURES / "Std.npy")
+    section = emdm_section(condition="action")
+    config = {"mean": mean.tolist(), "std": std.tolist(), "lr_g": 1e-3, "lr_d": 1e-3, "ema_decay": 0.0,
+              "model": emdm_training.model_config(section, 263, 8, num_actions=3, section="train_emdm_action")}
+    comps = emdm_training.build(config)
+    assert comps.models["generator"].config.geometric_weight == 1.0
+    ctx = StepContext(config, comps.models, comps.optimizers, {}, comps.frozen, torch.device("cpu"), 1, 1, 1.0)
+    batch = {key: value for key, value in _batch().items() if key != "text"} | {"label": torch.tensor([0, 2, 1])}
+    out = emdm_training.step(batch, ctx)
+    torch.testing.assert_close(out["loss"], out["g_adv"] + out["geo"])  # R = 1
+    with pytest.raises(ValueError, match=r"train_emdm_action\.model: condition='action' needs num_actions"):
+        emdm_training.model_config(section, 263, 8, num_actions=0, section="train_emdm_action")
+
+
+def test_action_stage_reads_the_labelled_classes_of_the_store(params) -> None:
+    action = copy.deepcopy(params) | {"train_emdm_action": emdm_section(condition="action")}
+    config = emdm_training.stage_config(action, "train_emdm_action")
+    store = FeatureStore(config["features_dir"])
+    assert config["classes"] == list(action_classes(store.split("train"))) and len(config["classes"]) >= 2
+    assert config["model"]["num_actions"] == len(config["classes"])
+    data = emdm_training.dataset(config)
+    labelled = labelled_items(store.split("train"))
+    assert len(data) == len(labelled) and set(data.labels.tolist()) <= set(range(len(config["classes"])))
+    assert "classes" not in emdm_training.stage_config(params)  # text: no classes
+
+
+def test_action_row_samples_labels_deterministically() -> None:
+    torch.manual_seed(0)
+    model = EMDMConfig(**emdm_training.model_config(emdm_section(condition="action"), 263, 8, num_actions=3))
+    row = EMDMActionRow("EMDM-action", EMDMGenerator(model), model.make_schedule(), 2.5, ["clap", "jump", "walk"])
+    out = row.sample_actions(np.array([0, 2]), np.array([12, 7]), seed=4)
+    assert out.shape == (2, 12, 263) and np.all(out[1, 7:] == 0) and np.abs(out[1, :7]).sum() > 0
+    np.testing.assert_array_equal(out, row.sample_actions(np.array([0, 2]), np.array([12, 7]), seed=4))
+    assert row.nfe == 20 and isinstance(row, ActionGenerator)
+    with pytest.raises(ValueError, match="not on the 2 action classes"):
+        EMDMActionRow("EMDM-action", EMDMGenerator(model), model.make_schedule(), 2.5, ["clap", "jump"])
 
 
 # --------------------------------------------------------------------------------------------------

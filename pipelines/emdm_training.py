@@ -1,0 +1,187 @@
+"""EMDM's training recipe (``train_emdm`` and ``train_emdm_action``): data, networks, one GAN step, params.
+
+The stages :mod:`stages.train_emdm` (text) and :mod:`stages.train_emdm_action` (action labels) are
+:func:`training_stage` of their params sections; their docstrings describe the recipe.
+"""
+
+from __future__ import annotations
+
+from dataclasses import fields
+from functools import partial
+from typing import Any
+
+import torch
+
+from data.motion_dataset import MotionTextDataset, collate_trimmed
+from models.emdm import (
+    EMDMConfig,
+    EMDMDiscriminator,
+    EMDMGenerator,
+    discriminator_step_losses,
+    generator_step_losses,
+    lazy_r1_scale,
+)
+from pipelines.cli import repo_path
+from pipelines.feature_store import FeatureStore
+from pipelines.recogniser import ActionClips, action_classes
+from pipelines.runner import Components, StepContext, TrainSpec
+from pipelines.stage import TrainingStage
+
+#: Adam's betas for both networks (EMDM's and DDGAN's code).
+ADAM_BETAS = (0.5, 0.9)
+#: Keys of the ``train_emdm`` params section (``loop`` is the runner's, checked by the skeleton).
+SECTION_KEYS = ("condition", "num_steps", "lr_g", "lr_d", "ema_decay", "geometric_weight", "geometric_lambda",
+                "r1_gamma", "r1_interval", "p_uncond", "crop_frames", "model", "loop")
+#: Keys of ``train_emdm.model``: the network sizes (the rest of :class:`EMDMConfig` comes from the store
+#: and the training keys above).
+MODEL_KEYS = ("width", "layers", "heads", "ff_dim", "dropout", "activation", "norm_first", "z_dim", "mapping_layers",
+              "d_width", "d_layers", "d_heads", "d_ff_dim", "d_time_dim", "patch_frames", "d_condition",
+              "input_skip")
+CONDITIONS = ("text", "action")
+
+
+def dataset(config: dict) -> MotionTextDataset | ActionClips:
+    """Text: every training motion with one of its captions. Action: the labelled single-action motions,
+    whole (up to ``crop_frames``), with the index of their label in ``classes``."""
+    if config["model"]["condition"] == "action":
+        return ActionClips(config["features_dir"], config["classes"], config["mean"], config["std"],
+                           config["crop_frames"])
+    return MotionTextDataset(config["features_dir"], "train", config["mean"], config["std"], config["crop_frames"])
+
+
+def build(config: dict) -> Components:
+    model = EMDMConfig(**config["model"])
+    generator, discriminator = EMDMGenerator(model), EMDMDiscriminator(model)
+    opt_g = torch.optim.Adam(generator.parameters(), lr=config["lr_g"], betas=ADAM_BETAS)
+    opt_d = torch.optim.Adam(discriminator.parameters(), lr=config["lr_d"], betas=ADAM_BETAS)
+    return Components(
+        models={"generator": generator, "discriminator": discriminator}, optimizers={"g": opt_g, "d": opt_d},
+        ema={"generator": config["ema_decay"]} if config["ema_decay"] else {},
+        frozen={"schedule": model.make_schedule(), "mean": torch.tensor(config["mean"]),
+                "std": torch.tensor(config["std"])})
+
+
+def step(batch: dict, ctx: StepContext) -> dict[str, torch.Tensor]:
+    """One D update (with lazy R1 when ``ctx.step`` is due), then one G update with D frozen."""
+    if ctx.world_size > 1:
+        raise NotImplementedError("train_emdm runs on one worker (ray.num_workers: 1): its D step is not DDP-safe")
+    generator, discriminator = ctx.models["generator"], ctx.models["discriminator"]
+    schedule = ctx.frozen["schedule"]
+    x0, lengths = batch["motion"], batch["length"]
+    cond = batch["label"] if generator.config.condition == "action" else batch["text"]
+
+    d = discriminator_step_losses(generator, discriminator, schedule, x0, cond, lengths, ctx.step)
+    ctx.update(d["total"], "d")
+
+    discriminator.requires_grad_(False)  # G's loss needs dD/dx only; D's gradients would be thrown away
+    try:
+        g = generator_step_losses(generator, discriminator, schedule, x0, cond, lengths, ctx.frozen["mean"],
+                                  ctx.frozen["std"])
+        ctx.update(g["total"], "g")
+    finally:
+        discriminator.requires_grad_(True)
+
+    out = {"loss": g["total"], "g_adv": g["adv"], "geo": g["geo"], "recon": g["recon"], "pos": g["pos"],
+           "vel": g["vel"], "foot": g["foot"], "d_loss": d["real"] + d["fake"], "d_real": d["real"],
+           "d_fake": d["fake"]}
+    if lazy_r1_scale(ctx.step, generator.config.r1_interval) > 0:
+        out["r1"] = d["r1"]  # only on R1 steps: the logged value is the mean over those
+    return {key: value.detach() for key, value in out.items()}
+
+
+# --------------------------------------------------------------------------------------------------
+# params -> loop config
+# --------------------------------------------------------------------------------------------------
+
+
+def _number(cfg: dict[str, Any], key: str, *, low: float, high: float | None = None, low_open: bool = False,
+            integer: bool = False, section: str = "train_emdm") -> float:
+    """``cfg[key]`` checked to be a number (an int if ``integer``) in its range; ValueError naming the key."""
+    value = cfg[key]
+    kinds = (int,) if integer else (int, float)
+    bad_type = isinstance(value, bool) or not isinstance(value, kinds)
+    if bad_type or value < low or (low_open and value == low) or (high is not None and value > high):
+        bounds = f"{'>' if low_open else '>='} {low}" + ("" if high is None else f" and <= {high}")
+        kind = "an integer" if integer else "a number"
+        raise ValueError(f"{section}.{key}: expected {kind} {bounds}, got {value!r}")
+    return value
+
+
+def check_section(cfg: dict[str, Any], section: str = "train_emdm") -> None:
+    """Validate a ``train_emdm``-like section (the ``loop`` group is the skeleton's); ValueError naming the key."""
+    if not isinstance(cfg, dict):
+        raise ValueError(f"{section}: expected a mapping, got {cfg!r}")
+    unknown, missing = sorted(set(cfg) - set(SECTION_KEYS)), [k for k in SECTION_KEYS if k not in cfg]
+    if unknown or missing:
+        raise ValueError(f"{section}: unknown key(s) {unknown}, missing key(s) {missing}")
+    if cfg["condition"] not in CONDITIONS:
+        raise ValueError(f"{section}.condition: expected one of {list(CONDITIONS)}, got {cfg['condition']!r}")
+    _number(cfg, "num_steps", low=1, integer=True, section=section)
+    for key in ("lr_g", "lr_d"):
+        _number(cfg, key, low=0.0, low_open=True, section=section)
+    _number(cfg, "ema_decay", low=0.0, high=1.0, section=section)
+    if cfg["geometric_weight"] is not None:
+        _number(cfg, "geometric_weight", low=0.0, section=section)
+    _number(cfg, "geometric_lambda", low=0.0, section=section)
+    _number(cfg, "r1_gamma", low=0.0, section=section)
+    _number(cfg, "r1_interval", low=1, integer=True, section=section)
+    _number(cfg, "p_uncond", low=0.0, high=1.0, section=section)
+    _number(cfg, "crop_frames", low=1, integer=True, section=section)
+    model = cfg["model"]
+    if not isinstance(model, dict):
+        raise ValueError(f"{section}.model: expected a mapping, got {model!r}")
+    unknown, missing = sorted(set(model) - set(MODEL_KEYS)), [k for k in MODEL_KEYS if k not in model]
+    if unknown or missing:
+        raise ValueError(f"{section}.model: unknown key(s) {unknown}, missing key(s) {missing}")
+
+
+def model_config(cfg: dict[str, Any], feature_dim: int, text_dim: int, num_actions: int = 0,
+                 section: str = "train_emdm") -> dict[str, Any]:
+    """The :class:`EMDMConfig` of a checked section, as a plain dict (sampling guidance left out: it is
+    ``sample.emdm_guidance``, a sampling setting)."""
+    model = {**cfg["model"], "feature_dim": feature_dim, "condition": cfg["condition"], "text_dim": text_dim,
+             "num_actions": num_actions, "p_uncond": cfg["p_uncond"], "r1_gamma": cfg["r1_gamma"],
+             "r1_interval": cfg["r1_interval"], "geo_weight": cfg["geometric_weight"],
+             "geo_lambda": cfg["geometric_lambda"], "num_steps": cfg["num_steps"]}
+    try:
+        checked = EMDMConfig(**model)
+    except (TypeError, ValueError) as err:
+        raise ValueError(f"{section}.model: {err}") from err
+    if checked.width % checked.heads or checked.d_width % checked.d_heads:
+        raise ValueError(f"{section}.model: width {checked.width} / d_width {checked.d_width} must be divisible "
+                         f"by heads {checked.heads} / d_heads {checked.d_heads}")
+    names = {f.name for f in fields(EMDMConfig)} - {"guidance"}
+    return {f.name: getattr(checked, f.name) for f in fields(EMDMConfig) if f.name in names}
+
+
+def stage_config(params: dict[str, Any], section: str = "train_emdm") -> dict[str, Any]:
+    """The stage's loop-config keys: absolute paths, the dataset statistics, the model and the losses.
+
+    Action conditioning adds ``classes``: the sorted labels of the training split's labelled motions
+    (the action recogniser's classes, :func:`pipelines.recogniser.action_classes`).
+    """
+    cfg = params[section]
+    check_section(cfg, section)
+    store = FeatureStore(repo_path(params, "features.out"))
+    classes: list[str] = []
+    if cfg["condition"] == "action":
+        classes = list(action_classes(store.split("train")))
+        if len(classes) < 2:
+            raise ValueError(f"{section}.condition: action needs labelled motions of at least 2 actions; "
+                             f"{store.path} has {len(classes)} (does the dataset have actions.txt?)")
+    out = {
+        "features_dir": str(store.path), "mean": store.mean.tolist(), "std": store.std.tolist(),
+        "crop_frames": cfg["crop_frames"], "lr_g": float(cfg["lr_g"]), "lr_d": float(cfg["lr_d"]),
+        "ema_decay": float(cfg["ema_decay"]),
+        "model": model_config(cfg, store.feature_dim, int(store.text_encoder_meta["dim"]), len(classes), section),
+    }
+    return out | ({"classes": classes} if classes else {})
+
+
+def training_stage(section: str, module: str) -> TrainingStage:
+    """The EMDM training stage named ``section`` reading its params section of the same name."""
+    return TrainingStage(
+        name=section, module=module, config=partial(stage_config, section=section),
+        spec=TrainSpec(build=build, dataset=dataset, step=step, collate=collate_trimmed),
+        inputs=("features_dir",), params=(section, "features.out", "paths", "ray"), max_workers=1,
+    )

@@ -1,0 +1,18 @@
+"""Stage ``train_emdm_action``: EMDM conditioned on action labels (the action-to-motion protocol).
+
+``python -m stages.train_emdm_action [key=value ...]``: :mod:`stages.train_emdm`'s recipe with the
+``train_emdm_action`` params section (``condition: action``; EMDM's action setting R = 1 and
+lambda = 1), trained on the store's labelled single-action motions. Writes
+``artifacts/train_emdm_action/``, evaluated by ``eval_emdm-action`` (recogniser accuracy, FID,
+Diversity, MultiModality).
+"""
+
+from __future__ import annotations
+
+from pipelines.emdm_training import training_stage
+from pipelines.stage import main
+
+STAGE = training_stage("train_emdm_action", __name__)
+
+if __name__ == "__main__":
+    main(STAGE)
