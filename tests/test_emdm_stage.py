@@ -181,6 +181,32 @@ def test_action_row_samples_labels_deterministically() -> None:
         EMDMActionRow("EMDM-action", EMDMGenerator(model), model.make_schedule(), 2.5, ["clap", "jump"])
 
 
+def test_the_sweep_hook_scores_the_trial_s_ema_generator(monkeypatch: pytest.MonkeyPatch) -> None:
+    """``emdm_scores`` builds the trial's generator from its final state (EMA weights when kept), samples in
+    the trained T steps with ``sample.emdm_guidance``, and returns what the validation protocol measures."""
+    from pipelines import validation
+
+    model = emdm_training.model_config(emdm_section(num_steps=5), 263, 8)
+    torch.manual_seed(0)
+    raw, ema = EMDMGenerator(EMDMConfig(**model)), EMDMGenerator(EMDMConfig(**model))
+    seen = {}
+
+    def fake_scores(params: dict[str, Any], row: Generator) -> dict[str, float]:
+        seen["row"] = row
+        return {"val_FID": 1.0, "val_R_precision_top3": 0.5}
+
+    monkeypatch.setattr(validation, "generator_scores", fake_scores)
+    state = {"models": {"generator": raw.state_dict()}, "ema": {"generator": {"module": ema.state_dict()}}}
+    out = validation.emdm_scores({"sample": {"emdm_guidance": 1.5}}, {"model": model}, state)
+    row = seen["row"]
+    assert out == {"val_FID": 1.0, "val_R_precision_top3": 0.5}
+    assert row.name == "EMDM-5" and row.guidance == 1.5 and row.nfe == 10
+    for name, value in row.generator.state_dict().items():
+        assert torch.equal(value, ema.state_dict()[name]), name
+    validation.emdm_scores({"sample": {"emdm_guidance": 1.5}}, {"model": model}, state | {"ema": {}})
+    assert all(torch.equal(v, raw.state_dict()[k]) for k, v in seen["row"].generator.state_dict().items())
+
+
 # --------------------------------------------------------------------------------------------------
 # Through the runner
 # --------------------------------------------------------------------------------------------------

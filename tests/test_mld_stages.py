@@ -19,7 +19,19 @@ from pipelines.mld_family import MLDGenerator, load_mld, load_vae
 from pipelines.registry import FAMILIES
 from pipelines.runner import run_training
 from pipelines.stage import loop_config, train
-from stages import distill_lcm, evaluate, generate, report, train_controlnet, train_evaluator, train_mld, train_vae
+from stages import (
+    distill_lcm,
+    evaluate,
+    generate,
+    report,
+    train_controlnet,
+    train_emdm,
+    train_emdm_action,
+    train_evaluator,
+    train_mld,
+    train_motiondiffuse,
+    train_vae,
+)
 
 pytestmark = pytest.mark.slow
 
@@ -42,6 +54,14 @@ def trained(small_store, ray_cluster):
     params["train_controlnet"]["loop"].update(max_steps=6, batch_size=8, log_every=3, warmup_steps=0)
     params["train_controlnet"]["encoder"].update(dim=16, **TINY_NET)
     params["sample"]["control_refine_steps"] = 2
+    for stage in ("train_emdm", "train_emdm_action", "train_motiondiffuse"):
+        params[stage]["loop"].update(max_steps=4, batch_size=8, log_every=2)
+        params[stage]["crop_frames"] = 64
+    for stage in ("train_emdm", "train_emdm_action"):
+        params[stage]["model"].update(width=16, heads=2, ff_dim=32, d_width=16, d_heads=2, d_ff_dim=32, layers=1)
+    params["train_motiondiffuse"]["model"].update(width=16, heads=2, ff_dim=32, text_heads=2, text_ff_dim=32,
+                                                  layers=1)
+    params["train_motiondiffuse"]["num_train_timesteps"] = 50
     params["evaluate"].update(replications=1, diversity_times=10, mm_texts=4, mm_repeats=11, timing_sentences=2)
     params["evaluate"]["samples"].update(prompts=["a person walks forward"], length=40)
     in_process = copy.deepcopy(params)
@@ -149,6 +169,9 @@ def test_evaluation_stages_and_report(trained):
     """Each family's stage writes its rows; the report merges them in registry order after Real."""
     train(distill_lcm.STAGE, trained)
     train(train_controlnet.STAGE, trained)
+    in_process = copy.deepcopy(trained) | {"ray": trained["ray"] | {"num_workers": 0}}
+    for stage in (train_emdm.STAGE, train_emdm_action.STAGE, train_motiondiffuse.STAGE):
+        train(stage, in_process)
     rows = {name: evaluate.run(name, trained) for name in ("real", *FAMILIES)}
     assert list(rows["real"]) == ["Real"] and list(rows["baselines"]) == ["Random", "Retrieval"]
     assert list(rows["vae"]) == ["VAE"] and list(rows["mld"]) == ["MLD-DDIM50", "MLD-DDIM1", "MLD-DDIM2", "MLD-DDIM4"]
@@ -160,6 +183,9 @@ def test_evaluation_stages_and_report(trained):
         assert row["loc_err_50cm"] <= row["loc_err_20cm"]
     # the uncontrolled reference answers the same captions with the same seeds as MotionLCM-1
     assert rows["motionlcm-control"]["MotionLCM-1-uncontrolled"]["FID"] == rows["motionlcm"]["MotionLCM-1"]["FID"]
+    assert list(rows["emdm"]) == ["EMDM-10"] and list(rows["emdm-action"]) == ["Real-action", "EMDM-action"]
+    assert list(rows["motiondiffuse"]) == ["MotionDiffuse-50", "MotionDiffuse-DDIM10"]
+    assert rows["emdm-action"]["Real-action"]["Accuracy"] > 0 and "Accuracy" not in rows["emdm"]["EMDM-10"]
     table = report.run(trained)
     assert list(table) == [row for name in ("real", *FAMILIES) for row in rows[name]]
     assert table["VAE"]["MPJPE_mm"] > 0 and "MPJPE_mm" not in table["Real"]
@@ -169,6 +195,7 @@ def test_evaluation_stages_and_report(trained):
     assert json.loads((out / "metrics.json").read_text()) == table
     assert "| MLD-DDIM50 |" in (out / "report.md").read_text()
     assert "## Trajectory control" in (out / "report.md").read_text()
+    assert "## Action-to-motion" in (out / "report.md").read_text()
     assert (out / "samples" / "MLD-DDIM50_0.gif").stat().st_size > 1000
     # a family evaluated again alone gives the same values: its rows do not depend on the others
     again = evaluate.run("baselines", trained)
