@@ -15,33 +15,27 @@ seed's measures. ``--render`` writes a frame strip per demo (seed 0).
 
 from __future__ import annotations
 
-import argparse
 import sys
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from prompt_probe import measures  # noqa: E402
+from prompt_probe import eval_context, measures, probe_parser  # noqa: E402
 
 from data.render import render_strip  # noqa: E402
 from data.skeleton import HUMANML3D  # noqa: E402
-from pipelines.cli import artifacts_dir, repo_path  # noqa: E402
-from pipelines.config import load_params  # noqa: E402
 from pipelines.motiondiffuse_family import sample_body_parts, sample_time_varied  # noqa: E402
-from pipelines.registry import EvalContext, GenerateOptions, family  # noqa: E402
+from pipelines.registry import GenerateOptions, family  # noqa: E402
 
 LENGTH = 120
 WAVE, WALK, JUMP = "a person waves with the right hand", "a person walks forward", "a person jumps in place"
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser = probe_parser(__doc__)
     parser.add_argument("--seeds", type=int, default=4)
-    parser.add_argument("--render", type=Path, default=None)
-    parser.add_argument("overrides", nargs="*")
     args = parser.parse_args()
-    params = load_params(args.overrides)
-    ctx = EvalContext(params, artifacts_dir(params), repo_path(params, "features.out"))
+    ctx = eval_context(args.overrides)
     row = family("motiondiffuse").build_generator(ctx, GenerateOptions())
     store = ctx.store
     text = {t: store.encode_prompts([t]) for t in (WAVE, WALK, JUMP)}

@@ -61,16 +61,27 @@ PROMPTS = {
 }
 
 
+def probe_parser(doc: str) -> argparse.ArgumentParser:
+    """A probe script's parser: its docstring's first paragraph, ``--render DIR`` and params overrides."""
+    parser = argparse.ArgumentParser(description=doc.split("\n\n")[0])
+    parser.add_argument("--render", type=Path, default=None, help="folder for frame strips to look at")
+    parser.add_argument("overrides", nargs="*", help="params overrides, e.g. paths.artifacts=elsewhere")
+    return parser
+
+
+def eval_context(overrides: list[str]) -> EvalContext:
+    """The trained models and feature store that ``params.yaml`` plus ``overrides`` point at."""
+    params = load_params(overrides)
+    return EvalContext(params, artifacts_dir(params), repo_path(params, "features.out"))
+
+
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser = probe_parser(__doc__)
     parser.add_argument("--model", required=True)
     parser.add_argument("--seeds", type=int, default=4)
     parser.add_argument("--length", type=int, default=120)
-    parser.add_argument("--render", type=Path, default=None)
-    parser.add_argument("overrides", nargs="*", help="params overrides, e.g. paths.artifacts=elsewhere")
     args = parser.parse_args()
-    params = load_params(args.overrides)
-    ctx = EvalContext(params, artifacts_dir(params), repo_path(params, "features.out"))
+    ctx = eval_context(args.overrides)
     generator = family(args.model).build_generator(ctx, GenerateOptions())
     store = ctx.store
     texts = list(PROMPTS)
