@@ -104,7 +104,7 @@ from torch.nn.attention import SDPBackend, sdpa_kernel
 from data.features import feature_groups, recover_from_ric
 from data.skeleton import SKELETONS
 from models.diffusion import cfg_combine, sample_timesteps
-from models.transformer import PositionalEncoding, TransformerLayer, lengths_to_mask, timestep_embedding
+from models.transformer import PositionalEncoding, TransformerLayer, eval_mode, lengths_to_mask, timestep_embedding
 
 Condition = Literal["text", "action"]
 EMDMActivation = Literal["selu", "gelu", "relu", "silu"]
@@ -138,16 +138,6 @@ def _valid_mask(lengths: Lengths, num_frames: int, device: torch.device) -> Tens
 def _per_sample_steps(t: Tensor | int, batch: int, device: torch.device) -> Tensor:
     t = torch.as_tensor(t, device=device).long()
     return t.expand(batch) if t.ndim == 0 else t
-
-
-@contextmanager
-def _eval_mode(module: nn.Module) -> Iterator[None]:
-    flag = module.training
-    try:
-        module.eval()
-        yield
-    finally:
-        module.train(flag)
 
 
 # --------------------------------------------------------------------------------------------------
@@ -786,7 +776,7 @@ def sample_emdm(
     ref = torch.empty(0, device=device, dtype=dtype)
     x = _randn((b, n, cfg.feature_dim), ref, generator_rng) if x_T is None else x_T.to(device, dtype)
     x = torch.where(valid, x, 0.0)
-    with _eval_mode(generator):
+    with eval_mode(generator):
         for step in reversed(range(schedule.num_steps)):
             t = torch.full((b,), step, dtype=torch.long, device=device)
             z = _randn((b, cfg.z_dim), ref, generator_rng)

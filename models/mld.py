@@ -51,8 +51,7 @@ space) and :func:`sample_mld` decodes ``s * z``.
 
 from __future__ import annotations
 
-from collections.abc import Iterator, Mapping, Sequence
-from contextlib import contextmanager
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any, Literal
 
@@ -74,6 +73,7 @@ from models.transformer import (
     PositionalEncodingKind,
     SkipOutput,
     SkipTransformer,
+    eval_mode,
     timestep_embedding,
 )
 from models.vae import MotionVAE
@@ -314,17 +314,6 @@ def mld_loss(
 # --------------------------------------------------------------------------------------------------
 
 
-@contextmanager
-def _eval_mode(*modules: nn.Module) -> Iterator[None]:
-    """Switch modules to eval for the block and restore their previous train/eval flags."""
-    flags = [m.training for m in modules]
-    try:
-        for m in modules:
-            m.eval()
-        yield
-    finally:
-        for m, flag in zip(modules, flags, strict=True):
-            m.train(flag)
 
 
 def latent_std(latents: Tensor) -> float:
@@ -382,7 +371,7 @@ def sample_mld(
         cond |= {"text_tokens": text_tokens, "text_mask": text_mask.bool()}
         uncond["text_mask"] = torch.zeros_like(text_mask[:1], dtype=torch.bool)
     guided = classifier_free_guidance(model_fn, guidance, uncond)
-    with _eval_mode(denoiser, vae):
+    with eval_mode(denoiser, vae):
         z0 = ddim_sample(
             guided, shape, schedule, num_steps, eta, generator, cfg.prediction_type,
             cond=cond, x_T=x_T, timestep_spacing=timestep_spacing, timesteps=timesteps,

@@ -98,8 +98,7 @@ Choices (each deliberate; "code" = the released MotionDiffuse code):
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterator, Mapping, Sequence
-from contextlib import contextmanager
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, fields
 from types import MappingProxyType
 from typing import Any, Literal, NamedTuple
@@ -118,7 +117,7 @@ from models.diffusion import (
     linear_betas,
     sample_timesteps,
 )
-from models.transformer import TransformerLayer, lengths_to_mask, timestep_embedding
+from models.transformer import TransformerLayer, eval_mode, lengths_to_mask, timestep_embedding
 
 AttentionKind = Literal["linear", "softmax"]
 SamplingMethod = Literal["ddpm", "ddim"]
@@ -478,16 +477,6 @@ def training_loss(
     return sq.sum() / (valid.sum().to(sq.dtype) * d).clamp(min=1.0)
 
 
-@contextmanager
-def _eval_mode(module: nn.Module) -> Iterator[None]:
-    flag = module.training
-    try:
-        module.eval()
-        yield
-    finally:
-        module.train(flag)
-
-
 def _model_device_dtype(model: nn.Module) -> tuple[torch.device, torch.dtype]:
     p = next(model.parameters())
     return p.device, p.dtype
@@ -525,7 +514,7 @@ def sample_motiondiffuse(
     if x_T is None:
         x_T = torch.randn(shape, generator=generator, device=_gen_device(generator, device), dtype=dtype)
     x_T = x_T.to(device, dtype)
-    with _eval_mode(model):
+    with eval_mode(model):
         text = model.encode_text(word_states.to(device), word_mask.to(device))
 
         def model_fn(x: Tensor, t: Tensor) -> Tensor:

@@ -44,8 +44,8 @@ from models.diffusion import (
     lcm_multistep_sample,
     lcm_training_timesteps,
 )
-from models.mld import MLDDenoiser, _eval_mode
-from models.transformer import timestep_embedding
+from models.mld import MLDDenoiser
+from models.transformer import eval_mode, timestep_embedding
 from models.vae import MotionVAE
 
 GUIDANCE_EMBED_DIM = 256
@@ -151,7 +151,7 @@ def motionlcm_latents(
         if text_tokens is None or text_mask is None:
             raise ValueError(f"this student has word_tokens={cfg.word_tokens!r}: pass text_tokens and text_mask")
         cond |= {"text_tokens": text_tokens, "text_mask": text_mask.bool()}
-    with _eval_mode(student):
+    with eval_mode(student):
         return lcm_multistep_sample(student, shape, schedule, generator=generator, cond=cond,
                                     timesteps=timesteps, prediction_type=cfg.prediction_type, device=text_emb.device)
 
@@ -179,5 +179,5 @@ def sample_motionlcm(
     """
     z0 = motionlcm_latents(student, schedule, text_emb, num_steps, w, generator, timesteps=timesteps,
                            text_tokens=text_tokens, text_mask=text_mask)
-    with _eval_mode(vae):
+    with eval_mode(vae):
         return vae.decode_by_length(z0 * student.config.latent_scale, lengths)

@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import argparse
 import sys
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -31,6 +31,21 @@ GROUPS = ("dataset", "scale")
 
 class ConfigError(ValueError):
     """A bad override or an unreadable params file."""
+
+
+def check_number(cfg: Mapping[str, Any], key: str, where: str, *, low: float, high: float | None = None,
+                 low_open: bool = False, high_open: bool = False, integer: bool = False) -> float:
+    """``cfg[key]`` checked to be a number (an int if ``integer``, never a bool) within its bounds (open or
+    closed); a ConfigError naming ``<where>.<key>``, the bounds and the value otherwise."""
+    value = cfg[key]
+    kinds = (int,) if integer else (int, float)
+    bad_type = isinstance(value, bool) or not isinstance(value, kinds)
+    if (bad_type or value < low or (low_open and value == low) or (high is not None and value > high)
+            or (high_open and value == high)):
+        upper = "" if high is None else f" and {'<' if high_open else '<='} {high}"
+        kind = "an integer" if integer else "a number"
+        raise ConfigError(f"{where}.{key}: expected {kind} {'>' if low_open else '>='} {low}{upper}, got {value!r}")
+    return value
 
 
 def compose_params(overrides: Sequence[str] = ()) -> dict[str, Any]:

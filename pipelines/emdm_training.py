@@ -22,6 +22,7 @@ from models.emdm import (
     lazy_r1_scale,
 )
 from pipelines.cli import repo_path
+from pipelines.config import check_number
 from pipelines.feature_store import FeatureStore
 from pipelines.recogniser import ActionClips, action_classes
 from pipelines.runner import Components, StepContext, TrainSpec
@@ -94,19 +95,6 @@ def step(batch: dict, ctx: StepContext) -> dict[str, torch.Tensor]:
 # --------------------------------------------------------------------------------------------------
 
 
-def _number(cfg: dict[str, Any], key: str, *, low: float, high: float | None = None, low_open: bool = False,
-            integer: bool = False, section: str = "train_emdm") -> float:
-    """``cfg[key]`` checked to be a number (an int if ``integer``) in its range; ValueError naming the key."""
-    value = cfg[key]
-    kinds = (int,) if integer else (int, float)
-    bad_type = isinstance(value, bool) or not isinstance(value, kinds)
-    if bad_type or value < low or (low_open and value == low) or (high is not None and value > high):
-        bounds = f"{'>' if low_open else '>='} {low}" + ("" if high is None else f" and <= {high}")
-        kind = "an integer" if integer else "a number"
-        raise ValueError(f"{section}.{key}: expected {kind} {bounds}, got {value!r}")
-    return value
-
-
 def check_section(cfg: dict[str, Any], section: str = "train_emdm") -> None:
     """Validate a ``train_emdm``-like section (the ``loop`` group is the skeleton's); ValueError naming the key."""
     if not isinstance(cfg, dict):
@@ -116,17 +104,17 @@ def check_section(cfg: dict[str, Any], section: str = "train_emdm") -> None:
         raise ValueError(f"{section}: unknown key(s) {unknown}, missing key(s) {missing}")
     if cfg["condition"] not in CONDITIONS:
         raise ValueError(f"{section}.condition: expected one of {list(CONDITIONS)}, got {cfg['condition']!r}")
-    _number(cfg, "num_steps", low=1, integer=True, section=section)
+    check_number(cfg, "num_steps", section, low=1, integer=True)
     for key in ("lr_g", "lr_d"):
-        _number(cfg, key, low=0.0, low_open=True, section=section)
-    _number(cfg, "ema_decay", low=0.0, high=1.0, section=section)
+        check_number(cfg, key, section, low=0.0, low_open=True)
+    check_number(cfg, "ema_decay", section, low=0.0, high=1.0)
     if cfg["geometric_weight"] is not None:
-        _number(cfg, "geometric_weight", low=0.0, section=section)
-    _number(cfg, "geometric_lambda", low=0.0, section=section)
-    _number(cfg, "r1_gamma", low=0.0, section=section)
-    _number(cfg, "r1_interval", low=1, integer=True, section=section)
-    _number(cfg, "p_uncond", low=0.0, high=1.0, section=section)
-    _number(cfg, "crop_frames", low=1, integer=True, section=section)
+        check_number(cfg, "geometric_weight", section, low=0.0)
+    check_number(cfg, "geometric_lambda", section, low=0.0)
+    check_number(cfg, "r1_gamma", section, low=0.0)
+    check_number(cfg, "r1_interval", section, low=1, integer=True)
+    check_number(cfg, "p_uncond", section, low=0.0, high=1.0)
+    check_number(cfg, "crop_frames", section, low=1, integer=True)
     model = cfg["model"]
     if not isinstance(model, dict):
         raise ValueError(f"{section}.model: expected a mapping, got {model!r}")

@@ -40,7 +40,7 @@ from data.motion_dataset import pad_motions
 from data.store import StoredItem, read_split
 from models.recogniser import ActionRecogniser, RecogniserConfig
 from pipelines.cli import param, repo_path
-from pipelines.config import ConfigError
+from pipelines.config import ConfigError, check_number
 from pipelines.feature_store import FeatureStore
 from pipelines.runner import Components, StepContext, TrainSpec
 
@@ -203,15 +203,9 @@ def check_section(section: Any, where: str = GROUP) -> dict[str, Any]:
     if unknown or missing:
         raise ConfigError(f"{where}: unknown key(s) {unknown}, missing key(s) {missing}")
     for key in ("hidden", "layers", "embed_dim", "frame_stride", "crop_frames"):
-        value = section[key]
-        if isinstance(value, bool) or not isinstance(value, int) or value < 1:
-            raise ConfigError(f"{where}.{key}: expected a positive integer, got {value!r}")
-    for key, low in (("lr", 0.0), ("min_crop_ratio", 0.0)):
-        value = section[key]
-        if isinstance(value, bool) or not isinstance(value, int | float) or not value > low:
-            raise ConfigError(f"{where}.{key}: expected a number > {low}, got {value!r}")
-    if section["min_crop_ratio"] > 1:
-        raise ConfigError(f"{where}.min_crop_ratio: must be at most 1, got {section['min_crop_ratio']!r}")
+        check_number(section, key, where, low=1, integer=True)
+    check_number(section, "lr", where, low=0.0, low_open=True)
+    check_number(section, "min_crop_ratio", where, low=0.0, low_open=True, high=1.0)
     return dict(section)
 
 

@@ -78,10 +78,19 @@ def run(name: str, params: dict[str, Any]) -> dict[str, dict[str, float]]:
     artifacts = artifacts_dir(params)
     ctx = EvalContext(params, artifacts, repo_path(params, "features.out"))
     cfg = eval_config(params["evaluate"])
+    out = artifacts / "eval" / name
+    rows = [] if name == REAL else family(name).build_rows(ctx)
+    actions = [row for row in rows if isinstance(row, ActionGenerator)]
+    if actions:  # the action-to-motion protocol: the recogniser, not the T2M evaluator
+        table = evaluate_action_rows(actions, ctx.store, load_recogniser(ctx.trained(RECOGNISER)), cfg.replications,
+                                     cfg.seed, diversity_times=cfg.diversity_times, mm_times=cfg.mm_times,
+                                     unit_length=cfg.unit_length)
+        with atomic_directory(out) as tmp:
+            (tmp / "metrics.json").write_text(json.dumps(table, indent=2) + "\n")
+        return table
     test = ctx.store.split("test")
     embedder = load_evaluator(ctx.trained("train_evaluator"))
     skeleton = get_skeleton(params["data"]["skeleton"])
-    out = artifacts / "eval" / name
     if name == REAL:
         refs = references(test, embedder, cfg)
         table = evaluate(refs, test, ctx.store.mean, ctx.store.std, embedder, skeleton, cfg, real=True)
@@ -89,15 +98,6 @@ def run(name: str, params: dict[str, Any]) -> dict[str, dict[str, float]]:
         with atomic_directory(out) as tmp:
             save_references(tmp / REFERENCES, refs)
             (tmp / "meta.json").write_text(json.dumps(meta, indent=2) + "\n")
-            (tmp / "metrics.json").write_text(json.dumps(table, indent=2) + "\n")
-        return table
-    rows = family(name).build_rows(ctx)
-    actions = [row for row in rows if isinstance(row, ActionGenerator)]
-    if actions:
-        table = evaluate_action_rows(actions, ctx.store, load_recogniser(ctx.trained(RECOGNISER)), cfg.replications,
-                                     cfg.seed, diversity_times=cfg.diversity_times, mm_times=cfg.mm_times,
-                                     unit_length=cfg.unit_length)
-        with atomic_directory(out) as tmp:
             (tmp / "metrics.json").write_text(json.dumps(table, indent=2) + "\n")
         return table
     refs = load_references(artifacts / "eval" / REAL / REFERENCES, test, cfg)

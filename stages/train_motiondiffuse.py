@@ -30,6 +30,7 @@ import torch
 from data.motion_dataset import MotionTextDataset, collate_trimmed_words
 from models.motiondiffuse import MotionDiffuse, MotionDiffuseConfig, training_loss
 from pipelines.cli import repo_path
+from pipelines.config import check_number
 from pipelines.feature_store import FeatureStore
 from pipelines.runner import Components, StepContext, TrainSpec
 from pipelines.stage import TrainingStage, main
@@ -71,21 +72,6 @@ def step(batch: dict, ctx: StepContext) -> dict[str, torch.Tensor]:
 # --------------------------------------------------------------------------------------------------
 
 
-def _number(cfg: dict[str, Any], key: str, *, low: float, high: float | None = None, low_open: bool = False,
-            high_open: bool = False, integer: bool = False, where: str = SECTION) -> float:
-    """``cfg[key]`` checked to be a number (an int if ``integer``) in its range; ValueError naming the key."""
-    value = cfg[key]
-    kinds = (int,) if integer else (int, float)
-    bad_type = isinstance(value, bool) or not isinstance(value, kinds)
-    if (bad_type or value < low or (low_open and value == low) or (high is not None and value > high)
-            or (high_open and value == high)):
-        bounds = f"{'>' if low_open else '>='} {low}" + ("" if high is None else f" and {'<' if high_open else '<='} "
-                                                                                  f"{high}")
-        kind = "an integer" if integer else "a number"
-        raise ValueError(f"{where}.{key}: expected {kind} {bounds}, got {value!r}")
-    return value
-
-
 def check_section(cfg: dict[str, Any]) -> None:
     """Validate the ``train_motiondiffuse`` section (the ``loop`` group is the skeleton's); ValueError naming
     the key."""
@@ -94,12 +80,12 @@ def check_section(cfg: dict[str, Any]) -> None:
     unknown, missing = sorted(set(cfg) - set(SECTION_KEYS)), [k for k in SECTION_KEYS if k not in cfg]
     if unknown or missing:
         raise ValueError(f"{SECTION}: unknown key(s) {unknown}, missing key(s) {missing}")
-    _number(cfg, "lr", low=0.0, low_open=True)
-    _number(cfg, "ema_decay", low=0.0, high=1.0, high_open=True)
-    _number(cfg, "crop_frames", low=1, integer=True)
-    steps = _number(cfg, "num_train_timesteps", low=1, integer=True)
-    _number(cfg, "beta_start", low=0.0, low_open=True)
-    _number(cfg, "beta_end", low=0.0, low_open=True)
+    check_number(cfg, "lr", SECTION, low=0.0, low_open=True)
+    check_number(cfg, "ema_decay", SECTION, low=0.0, high=1.0, high_open=True)
+    check_number(cfg, "crop_frames", SECTION, low=1, integer=True)
+    steps = check_number(cfg, "num_train_timesteps", SECTION, low=1, integer=True)
+    check_number(cfg, "beta_start", SECTION, low=0.0, low_open=True)
+    check_number(cfg, "beta_end", SECTION, low=0.0, low_open=True)
     if cfg["beta_end"] <= cfg["beta_start"]:
         raise ValueError(f"{SECTION}.beta_end: must exceed beta_start ({cfg['beta_start']}), got {cfg['beta_end']!r}")
     if cfg["beta_end"] * 1000.0 / steps >= 1.0:
@@ -112,9 +98,9 @@ def check_section(cfg: dict[str, Any]) -> None:
     if unknown or missing:
         raise ValueError(f"{SECTION}.model: unknown key(s) {unknown}, missing key(s) {missing}")
     for key in ("width", "layers", "heads", "ff_dim", "text_heads", "text_ff_dim", "time_embed_mult", "max_len"):
-        _number(model, key, low=1, integer=True, where=f"{SECTION}.model")
-    _number(model, "text_layers", low=0, integer=True, where=f"{SECTION}.model")
-    _number(model, "dropout", low=0.0, high=1.0, high_open=True, where=f"{SECTION}.model")
+        check_number(model, key, f"{SECTION}.model", low=1, integer=True)
+    check_number(model, "text_layers", f"{SECTION}.model", low=0, integer=True)
+    check_number(model, "dropout", f"{SECTION}.model", low=0.0, high=1.0, high_open=True)
     if not isinstance(model["input_skip"], bool):
         raise ValueError(f"{SECTION}.model.input_skip: expected true or false, got {model['input_skip']!r}")
     if model["attention"] not in ("linear", "softmax"):

@@ -15,6 +15,7 @@ from typing import Any
 import numpy as np
 import pytest
 import torch
+from state_checks import assert_same, final_state
 
 from models.emdm import EMDMConfig, EMDMGenerator
 from models.generator import Generator, TextBatch
@@ -212,27 +213,6 @@ def test_the_sweep_hook_scores_the_trial_s_ema_generator(monkeypatch: pytest.Mon
 # --------------------------------------------------------------------------------------------------
 
 
-def _assert_same(a: Any, b: Any, where: str) -> None:
-    """Nested state dicts equal exactly (tensors bit for bit)."""
-    if isinstance(a, torch.Tensor):
-        assert isinstance(b, torch.Tensor) and a.dtype == b.dtype and torch.equal(a, b), where
-    elif isinstance(a, dict):
-        assert isinstance(b, dict) and a.keys() == b.keys(), where
-        for key in a:
-            _assert_same(a[key], b[key], f"{where}.{key}")
-    elif isinstance(a, list | tuple):
-        assert isinstance(b, list | tuple) and len(a) == len(b), where
-        for k, (x, y) in enumerate(zip(a, b, strict=True)):
-            _assert_same(x, y, f"{where}[{k}]")
-    else:
-        assert a == b, where
-
-
-def _final_state(run_path: str) -> dict[str, Any]:
-    latest = sorted(p for p in Path(run_path).glob("checkpoint_*") if p.is_dir())[-1]
-    return ckpt.load_state(latest)
-
-
 @pytest.mark.slow
 def test_gan_step_through_ray_resumes_exactly(params, ray_cluster, tmp_path: Path) -> None:
     """3 steps resumed to 6 equal 6 straight: G, D, both Adam states, both schedulers, the EMA and the
@@ -247,12 +227,12 @@ def test_gan_step_through_ray_resumes_exactly(params, ray_cluster, tmp_path: Pat
     resumed = run_training("emdm", train_emdm.STAGE.spec, config | {"max_steps": 6}, params["ray"],
                            tmp_path / "resumed", storage, run_name="emdm-resumed")
     assert straight.attempts == [0] and resumed.attempts == [0, 3]
-    a, b = _final_state(straight.run_path), _final_state(resumed.run_path)
+    a, b = final_state(straight.run_path), final_state(resumed.run_path)
     assert a["step"] == b["step"] == 6
     assert set(a["models"]) == {"generator", "discriminator"} and set(a["optimizers"]) == {"g", "d"}
     assert set(a["ema"]) == {"generator"} and set(a["schedulers"]) == {"g", "d"}
     for part in ("models", "optimizers", "schedulers", "ema"):
-        _assert_same(a[part], b[part], part)
+        assert_same(a[part], b[part], part)
     assert all(a["optimizers"][name]["state"] for name in ("g", "d"))
     assert not torch.equal(a["ema"]["generator"]["module"]["frame_out.weight"],
                            a["models"]["generator"]["frame_out.weight"])

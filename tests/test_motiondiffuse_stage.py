@@ -16,6 +16,7 @@ from typing import Any
 import numpy as np
 import pytest
 import torch
+from state_checks import assert_same, final_state
 
 from data.skeleton import HUMANML3D
 from data.store import StoredItem
@@ -336,27 +337,6 @@ def test_generate_cli_checks_specs_for_motiondiffuse(capsys: pytest.CaptureFixtu
 # --------------------------------------------------------------------------------------------------
 
 
-def _assert_same(a: Any, b: Any, where: str) -> None:
-    """Nested state dicts equal exactly (tensors bit for bit)."""
-    if isinstance(a, torch.Tensor):
-        assert isinstance(b, torch.Tensor) and a.dtype == b.dtype and torch.equal(a, b), where
-    elif isinstance(a, dict):
-        assert isinstance(b, dict) and a.keys() == b.keys(), where
-        for key in a:
-            _assert_same(a[key], b[key], f"{where}.{key}")
-    elif isinstance(a, list | tuple):
-        assert isinstance(b, list | tuple) and len(a) == len(b), where
-        for k, (x, y) in enumerate(zip(a, b, strict=True)):
-            _assert_same(x, y, f"{where}[{k}]")
-    else:
-        assert a == b, where
-
-
-def _final_state(run_path: str) -> dict[str, Any]:
-    latest = sorted(p for p in Path(run_path).glob("checkpoint_*") if p.is_dir())[-1]
-    return ckpt.load_state(latest)
-
-
 @pytest.mark.slow
 def test_step_through_ray_resumes_exactly(params, ray_cluster, tmp_path: Path) -> None:
     """3 steps resumed to 6 equal 6 straight: the model, Adam, the scheduler, the EMA and the logged losses."""
@@ -370,10 +350,10 @@ def test_step_through_ray_resumes_exactly(params, ray_cluster, tmp_path: Path) -
     resumed = run_training("md", stage.STAGE.spec, config | {"max_steps": 6}, params["ray"], tmp_path / "resumed",
                            storage, run_name="md-resumed")
     assert straight.attempts == [0] and resumed.attempts == [0, 3]
-    a, b = _final_state(straight.run_path), _final_state(resumed.run_path)
+    a, b = final_state(straight.run_path), final_state(resumed.run_path)
     assert a["step"] == b["step"] == 6 and set(a["models"]) == set(a["ema"]) == {"denoiser"}
     for part in ("models", "optimizers", "schedulers", "ema"):
-        _assert_same(a[part], b[part], part)
+        assert_same(a[part], b[part], part)
     assert [row["step"] for row in straight.history] == [3, 6]
     for x, y in zip(straight.history, resumed.history, strict=True):
         assert x["loss"] == y["loss"] and np.isfinite(x["loss"])
