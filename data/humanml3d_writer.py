@@ -191,7 +191,7 @@ def write_dataset(
             they must agree with each other.
 
     Raises:
-        ValueError: invalid split name.
+        ValueError: invalid split name, or ``root`` holds data this writer did not write.
         NotADirectoryError: ``root`` exists and is not a directory.
         DatasetError: bad ids (invalid, duplicate, unknown in a split), empty captions,
             non-finite or mis-shaped arrays, invalid action labels -- all of them listed.
@@ -201,5 +201,5 @@ def write_dataset(
         check_split_name(split)
     if root.exists() and not root.is_dir():
         raise NotADirectoryError(f"{root} exists and is not a directory")
-    with atomic_directory(root) as tmp:
+    with atomic_directory(root, owner="write_dataset") as tmp:
         _write_into(tmp, clips, splits, skeleton)

@@ -56,7 +56,7 @@ from torch import nn
 from torch.optim import Optimizer
 from torch.utils.data import DataLoader, Dataset, DistributedSampler
 
-from data.atomic import atomic_directory
+from data.atomic import atomic_directory, check_output
 from pipelines import checkpoint as ckpt
 from pipelines import tracking
 from pipelines.schedules import EMA, make_scheduler
@@ -800,7 +800,7 @@ def write_outputs(out_dir: Path, stage: str, state: Mapping[str, Any], loop_conf
     """Atomically write ``out_dir``: model.pt, metrics.json, loss.csv, loss.png, run.json."""
     history = list(state["history"])
     metrics = summarise(history, state, wall_time_s)
-    with atomic_directory(out_dir) as tmp:
+    with atomic_directory(out_dir, owner=stage) as tmp:
         torch.save(ckpt.final_model_payload(state, loop_config), tmp / ckpt.MODEL_FILE)
         tracking.write_metrics_json(tmp / "metrics.json", metrics)
         tracking.write_history_csv(tmp / "loss.csv", history)
@@ -841,6 +841,7 @@ def run_training(stage: str, spec: TrainSpec, loop_config: Mapping[str, Any],
         fingerprint: digest of the code and inputs (:func:`pipelines.identity.fingerprint`);
             part of the run name, so a run resumes only from a run of the same code and inputs.
     """
+    check_output(Path(out_dir), owner=stage)
     opts = RayOptions.from_dict(ray_cfg)
     storage = resolve_storage(storage or opts.storage)
     world = 1 if opts.in_process else opts.num_workers

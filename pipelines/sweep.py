@@ -77,7 +77,7 @@ from ray.tune.schedulers import ASHAScheduler, FIFOScheduler
 from ray.tune.search.basic_variant import BasicVariantGenerator
 from ray.util.placement_group import PlacementGroup, remove_placement_group
 
-from data.atomic import atomic_directory
+from data.atomic import atomic_directory, check_output
 from pipelines.checkpoint import MODEL_FILE, load_state
 from pipelines.runner import (
     LoopSettings,
@@ -666,7 +666,7 @@ def write_outputs(out_dir: Path, stage: str, table: list[dict[str, Any]], best: 
     best_yaml = (f"# Best of the {stage} sweep: {settings.metric} {best[settings.metric]:.6g} (trial "
                  f"{best['trial_id']}). Use with `dvc exp run -S {stage}.<key>=<value>` or copy into conf/.\n")
     best_yaml += yaml.safe_dump({stage: {key: best[key] for key in keys}}, sort_keys=False)
-    with atomic_directory(out_dir) as tmp:
+    with atomic_directory(out_dir, owner="sweep") as tmp:
         pq.write_table(_parquet_table(table), tmp / "results.parquet")
         (tmp / "results.md").write_text(header + markdown_table(ordered, columns), encoding="utf-8")
         (tmp / "best_params.yaml").write_text(best_yaml, encoding="utf-8")
@@ -688,6 +688,7 @@ def run_sweep(target: SweepTarget, params: dict, repo_root: Path, *, callbacks: 
     opts = _trial_ray_options(params, settings)
     storage = ray_storage(params)
     artifacts = repo_root / params["paths"]["artifacts"] / "sweeps"
+    check_output(artifacts / stage, owner="sweep")
     started = ensure_ray(opts.address, opts.runtime_env)
     try:
         overrides = {}

@@ -31,7 +31,7 @@ from typing import Any
 
 import numpy as np
 
-from data.atomic import atomic_directory
+from data.atomic import atomic_directory, check_output
 from data.render import render_animation
 from data.skeleton import get_skeleton
 from models.generator import Generator, Reconstructor
@@ -79,13 +79,14 @@ def run(name: str, params: dict[str, Any]) -> dict[str, dict[str, float]]:
     ctx = EvalContext(params, artifacts, repo_path(params, "features.out"))
     cfg = eval_config(params["evaluate"])
     out = artifacts / "eval" / name
+    check_output(out, owner="evaluate")
     rows = [] if name == REAL else family(name).build_rows(ctx)
     actions = [row for row in rows if isinstance(row, ActionGenerator)]
     if actions:  # the action-to-motion protocol: the recogniser, not the T2M evaluator
         table = evaluate_action_rows(actions, ctx.store, load_recogniser(ctx.trained(RECOGNISER)), cfg.replications,
                                      cfg.seed, diversity_times=cfg.diversity_times, mm_times=cfg.mm_times,
                                      unit_length=cfg.unit_length)
-        with atomic_directory(out) as tmp:
+        with atomic_directory(out, owner="evaluate") as tmp:
             (tmp / "metrics.json").write_text(json.dumps(table, indent=2) + "\n")
         return table
     test = ctx.store.split("test")
@@ -95,7 +96,7 @@ def run(name: str, params: dict[str, Any]) -> dict[str, dict[str, float]]:
         refs = references(test, embedder, cfg)
         table = evaluate(refs, test, ctx.store.mean, ctx.store.std, embedder, skeleton, cfg, real=True)
         meta = {"dataset": params["data"]["name"], "test_items": len(test), "replications": cfg.replications}
-        with atomic_directory(out) as tmp:
+        with atomic_directory(out, owner="evaluate") as tmp:
             save_references(tmp / REFERENCES, refs)
             (tmp / "meta.json").write_text(json.dumps(meta, indent=2) + "\n")
             (tmp / "metrics.json").write_text(json.dumps(table, indent=2) + "\n")
@@ -104,7 +105,7 @@ def run(name: str, params: dict[str, Any]) -> dict[str, dict[str, float]]:
     generators = [row for row in rows if isinstance(row, Generator)]
     reconstructors = [row for row in rows if isinstance(row, Reconstructor) and not isinstance(row, Generator)]
     table = evaluate(refs, test, ctx.store.mean, ctx.store.std, embedder, skeleton, cfg, generators, reconstructors)
-    with atomic_directory(out) as tmp:
+    with atomic_directory(out, owner="evaluate") as tmp:
         (tmp / "metrics.json").write_text(json.dumps(table, indent=2) + "\n")
         render_samples(generators, ctx, tmp / "samples")
     return table

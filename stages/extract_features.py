@@ -31,7 +31,7 @@ from typing import Any
 import numpy as np
 from tqdm import tqdm
 
-from data.atomic import atomic_directory
+from data.atomic import atomic_directory, check_output
 from data.features import features_from_joints, grouped_mean_std
 from data.humanml3d import DatasetError, Problem, SplitData, read_split
 from data.skeleton import Skeleton, get_skeleton
@@ -165,6 +165,7 @@ def run(params: dict[str, Any]) -> Path:
     data_cfg, feat_cfg = params["data"], params["features"]
     root = (REPO_ROOT / data_cfg["root"]).resolve()
     out = (REPO_ROOT / feat_cfg["out"]).resolve()
+    check_output(out, owner="extract_features")
     skeleton = get_skeleton(data_cfg["skeleton"])
     start = time.perf_counter()
 
@@ -181,7 +182,7 @@ def run(params: dict[str, Any]) -> Path:
     text = encode_captions(splits, encoder, feat_cfg["text_batch_size"])
 
     counts = {}
-    with atomic_directory(out) as tmp:
+    with atomic_directory(out, owner="extract_features") as tmp:
         for split, data in splits.items():
             rows = build_items(data, feats, text)
             write_split(tmp / f"{split}.parquet", rows, skeleton.feature_dim, encoder.dim, encoder.token_dim)

@@ -22,7 +22,7 @@ from typing import Any
 
 from tqdm import tqdm
 
-from data.atomic import atomic_directory
+from data.atomic import atomic_directory, check_output
 from data.humanml3d_writer import write_dataset
 from data.render import contact_sheet, render_animation
 from data.skeleton import HUMANML3D
@@ -56,13 +56,14 @@ def write_previews(folder: Path, motions: Sequence[SyntheticMotion], gifs: int) 
 
 def build_dataset(root: Path, config: SyntheticConfig, seed: int) -> dict:
     """Generate, write, preview and describe the dataset in ``root`` atomically; returns the stats."""
+    check_output(root, owner="make_dataset")
     start = time.perf_counter()
     total = config.num_motions * (2 if config.mirror else 1)
     motions = list(tqdm(generate(config, seed), total=total, desc="make_dataset", unit="motion"))
     generated = time.perf_counter()
     splits = make_splits(config.num_motions, config.splits, seed, config.mirror)
     stats = dataset_stats(motions)
-    with atomic_directory(root) as tmp:
+    with atomic_directory(root, owner="make_dataset") as tmp:
         write_dataset(tmp, (m.clip() for m in motions), splits, skeleton=HUMANML3D)
         if config.previews > 0:
             write_previews(tmp / "preview", motions, config.previews)

@@ -15,7 +15,7 @@ import shutil
 from pathlib import Path
 from typing import Any
 
-from data.atomic import atomic_directory
+from data.atomic import atomic_directory, check_output
 from pipelines.cli import artifacts_dir, run_main
 from pipelines.registry import FAMILIES
 from pipelines.report import merge_tables, plot_fid_vs_time, report_markdown
@@ -47,12 +47,13 @@ def _replace(path: Path, write: Any) -> None:
 def run(params: dict[str, Any]) -> dict[str, dict[str, float]]:
     """Merge, write and print the report; returns the merged table."""
     eval_dir = artifacts_dir(params) / "eval"
+    check_output(eval_dir / "samples", owner="report")
     table = merge_tables([_read_json(eval_dir / name / "metrics.json") for name in SOURCES])
     report = report_markdown(table, _read_json(eval_dir / "real" / "meta.json"))
     _replace(eval_dir / "metrics.json", lambda p: p.write_text(json.dumps(table, indent=2) + "\n"))
     _replace(eval_dir / "report.md", lambda p: p.write_text(report, encoding="utf-8"))
     _replace(eval_dir / "fid_vs_time.png", lambda p: plot_fid_vs_time(table, p))
-    with atomic_directory(eval_dir / "samples") as tmp:
+    with atomic_directory(eval_dir / "samples", owner="report") as tmp:
         for name in SOURCES:
             for gif in sorted((eval_dir / name / "samples").glob("*")):
                 shutil.copy2(gif, tmp / gif.name)

@@ -11,6 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from data.atomic import MANIFEST
 from data.humanml3d import (
     Caption,
     DatasetError,
@@ -275,7 +276,7 @@ def test_failed_write_keeps_existing_root(dataset: Path) -> None:
 
 def test_successful_write_replaces_existing_root(dataset: Path) -> None:
     write_dataset(dataset, [Clip("new1", [cap("a person runs")], joints=joints(45))], {"test": ["new1"]})
-    assert sorted(p.name for p in dataset.iterdir()) == ["new_joint_vecs", "new_joints", "test.txt", "texts"]
+    assert sorted(p.name for p in dataset.iterdir()) == [MANIFEST, "new_joint_vecs", "new_joints", "test.txt", "texts"]
     assert [i.item_id for i in read_split(dataset, "test", HUMANML3D).items] == ["new1"]
     assert [p.name for p in dataset.parent.iterdir()] == ["hml"]
 
