@@ -1,4 +1,4 @@
-"""Stage ``make_dataset``: the embedded synthetic dataset (HumanML3D layout) in ``data.root``.
+"""Stage ``make_dataset``: the embedded synthetic dataset (HumanML3D layout) in ``<paths.artifacts>/dataset``.
 
 ``python -m stages.make_dataset [key=value ...]`` generates ``synthetic.num_motions`` motions
 (plus mirrors) from ``seed`` (data/synthetic.py) and writes, atomically::
@@ -8,8 +8,11 @@
     preview/<id>.gif             a few motions as animations, with their first caption
     preview/contact_sheet.png    one panel per action class (no preview/ when synthetic.previews=0)
 
-Everything is built in a temporary sibling directory that replaces ``data.root`` only when
-complete, so an interrupted run never leaves a dataset that looks finished.
+Everything is built in a temporary sibling directory that replaces the output only when
+complete, so an interrupted run never leaves a dataset that looks finished. The output is always
+``<paths.artifacts>/dataset`` (the stage's DVC out), never ``data.root``: with a real dataset
+(``dataset=humanml3d``) ``data.root`` is the user's copy, which this stage must not touch. The
+``synthetic`` dataset config points ``data.root`` here.
 """
 
 from __future__ import annotations
@@ -27,8 +30,7 @@ from data.humanml3d_writer import write_dataset
 from data.render import contact_sheet, render_animation
 from data.skeleton import HUMANML3D
 from data.synthetic import SyntheticConfig, SyntheticMotion, dataset_stats, generate, make_splits
-from pipelines.cli import run_main
-from pipelines.config import REPO_ROOT
+from pipelines.cli import artifacts_dir, run_main
 
 SHEET_PANELS = 20
 
@@ -73,13 +75,14 @@ def build_dataset(root: Path, config: SyntheticConfig, seed: int) -> dict:
     return stats
 
 
-PARAMS = ("seed", "synthetic", "data.root")
+PARAMS = ("seed", "synthetic", "paths.artifacts")
+OUT = "dataset"
 
 
 def run(params: dict[str, Any]) -> dict[str, Any]:
-    """The stage with params: the dataset under ``data.root``; returns its statistics."""
+    """The stage with params: the dataset under ``<paths.artifacts>/dataset``; returns its statistics."""
     config = SyntheticConfig.from_params(params["synthetic"])
-    return build_dataset((REPO_ROOT / params["data"]["root"]).resolve(), config, int(params["seed"]))
+    return build_dataset(artifacts_dir(params) / OUT, config, int(params["seed"]))
 
 
 def main(argv: Sequence[str] | None = None) -> None:

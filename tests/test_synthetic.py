@@ -366,12 +366,17 @@ def test_a_failed_build_leaves_no_dataset(tmp_path, monkeypatch):
     assert list(tmp_path.iterdir()) == []
 
 
-def test_stage_main_reads_params(tmp_path):
-    root = tmp_path / "ds"
-    make_dataset.main([f"data.root={root}", "+synthetic.num_motions=6", "+synthetic.previews=0",
-                       "+synthetic.workers=1", "+synthetic.mirror=false"])
+def test_stage_main_reads_params_and_never_writes_data_root(tmp_path):
+    """The stage writes <paths.artifacts>/dataset; data.root (a user's real dataset) stays untouched."""
+    users = tmp_path / "HumanML3D"
+    users.mkdir()
+    (users / "train.txt").write_text("000001\n")
+    root = tmp_path / "dataset"
+    make_dataset.main([f"paths.artifacts={tmp_path}", f"data.root={users}", "+synthetic.num_motions=6",
+                       "+synthetic.previews=0", "+synthetic.workers=1", "+synthetic.mirror=false"])
     assert len((root / "train.txt").read_text().split()) + len((root / "test.txt").read_text().split()) + len(
         (root / "val.txt").read_text().split()) == 6
+    assert [p.name for p in users.iterdir()] == ["train.txt"] and (users / "train.txt").read_text() == "000001\n"
 
 
 def test_config_rejects_unknown_and_bad_params():
