@@ -801,7 +801,7 @@ def write_outputs(out_dir: Path, stage: str, state: Mapping[str, Any], loop_conf
     history = list(state["history"])
     metrics = summarise(history, state, wall_time_s)
     with atomic_directory(out_dir, owner=stage) as tmp:
-        torch.save(ckpt.final_model_payload(state, loop_config), tmp / ckpt.MODEL_FILE)
+        ckpt.save_final_model(tmp, ckpt.final_model_payload(state, loop_config))
         tracking.write_metrics_json(tmp / "metrics.json", metrics)
         tracking.write_history_csv(tmp / "loss.csv", history)
         tracking.plot_history_png(tmp / "loss.png", history, title=stage)
