@@ -28,7 +28,7 @@ from data.render import contact_sheet, render_animation
 from data.skeleton import HUMANML3D
 from data.synthetic import SyntheticConfig, SyntheticMotion, dataset_stats, generate, make_splits
 from pipelines.cli import run_main
-from pipelines.config import REPO_ROOT
+from pipelines.config import REPO_ROOT, check_fields
 
 SHEET_PANELS = 20
 
@@ -75,6 +75,12 @@ def build_dataset(root: Path, config: SyntheticConfig, seed: int) -> dict:
 PARAMS = ("seed", "synthetic", "data.root")
 
 
+def check_section(params: dict[str, Any]) -> None:
+    """The ``synthetic`` section checked before any work: types (SyntheticConfig's fields), then its ranges."""
+    check_fields(params["synthetic"], SyntheticConfig, "synthetic")
+    SyntheticConfig.from_params(params["synthetic"])
+
+
 def run(params: dict[str, Any]) -> dict[str, Any]:
     """The stage with params: the dataset under ``data.root``; returns its statistics."""
     config = SyntheticConfig.from_params(params["synthetic"])
@@ -83,7 +89,7 @@ def run(params: dict[str, Any]) -> dict[str, Any]:
 
 def main(argv: Sequence[str] | None = None) -> None:
     """Run the stage with params.yaml and ``key=value`` overrides."""
-    run_main("make_dataset", run, PARAMS, argv)
+    run_main("make_dataset", run, PARAMS, argv, checks=[check_section])
 
 
 if __name__ == "__main__":
