@@ -201,12 +201,11 @@ def run_stage(*args: str) -> tuple[subprocess.CompletedProcess, float]:
     return proc, time.perf_counter() - start
 
 
-@functools.cache
-def import_seconds(module: str) -> float:
-    """Wall seconds of starting Python and importing ``module`` (mostly torch) on this machine, now."""
-    start = time.perf_counter()
-    subprocess.run([sys.executable, "-c", f"import {module}"], cwd=REPO_ROOT, check=True, timeout=120)
-    return time.perf_counter() - start
+#: An override per stage that makes its run fail at once on a missing input: a config error reported
+#: instead proves the checks ran before any work.
+NO_INPUT = {"stages.train_vae": "features.out=/nonexistent/features",
+            "stages.extract_features": "data.root=/nonexistent/dataset",
+            "stages.evaluate": "paths.artifacts=/nonexistent/artifacts"}
 
 
 @pytest.mark.slow
@@ -228,15 +227,15 @@ def import_seconds(module: str) -> float:
     (("stages.evaluate", "mld", "sample.mld_guidance=lots"), "sample.mld_guidance: expected a number >= 0.0"),
 ])
 def test_config_error_is_one_line_naming_the_key_before_any_work(args, message):
-    proc, seconds = run_stage(*args)
+    proc, seconds = run_stage(*args, NO_INPUT[args[0]])
     stage = "eval_mld" if args[0] == "stages.evaluate" else args[0].split(".")[1]
     assert proc.returncode == 1, proc.stderr
     assert "Traceback" not in proc.stderr
     [line] = proc.stderr.splitlines()
     assert line.startswith(f"{stage}: ") and message in line, line
-    # checked up front: no data read, no Ray started. The bound is relative because the import alone (torch)
-    # takes 3-5 s on an idle 2-core machine and several times that on a loaded one.
-    assert seconds < import_seconds(args[0]) + 5
+    # the issue's failure came a minute later, after Ray started and retried; the import alone (torch) takes
+    # 3-5 s on an idle 2-core machine, more on a loaded one: the bound leaves room for load, not for work
+    assert seconds < 30
 
 
 @pytest.mark.slow
