@@ -5,23 +5,34 @@ composition of ``conf/config.yaml`` with its default groups; ``dvc exp run -S sc
 re-composes it (``hydra.enabled`` in ``.dvc/config``), and ``python -m pipelines.config`` does
 the same by hand. Stage modules take ``key=value`` overrides on their command line:
 
-- dotted keys (``data.on_error=skip``) change ``params.yaml``'s values for that run;
-- group choices (``scale=smoke``, ``dataset=kit``) re-compose ``conf/`` first.
+- dotted keys (``data.on_error=skip``) change ``params.yaml``'s values for that run; values are typed
+  as YAML 1.2 and OmegaConf type them (``1e-3`` and ``.5`` are floats, ``true``/``false`` booleans,
+  ``null`` None, ``7`` an int, anything else a string);
+- ``~key`` removes a key (the stage then reports it missing), ``+key=value`` adds a new one;
+- group choices (``scale=smoke``, ``dataset=kit``) re-compose ``conf/`` first; a choice must be a
+  file ``conf/<group>/<choice>.yaml``.
 
-Unknown keys are errors (``+key=value`` adds a new one), so a typo never passes silently.
+Unknown keys are errors, so a typo never passes silently.
 """
 
 from __future__ import annotations
 
 import argparse
+import copy
+import dataclasses
+import re
 import sys
+import types
+import typing
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
 import yaml
 from hydra import compose, initialize_config_dir
+from hydra.errors import HydraException
 from omegaconf import OmegaConf
+from omegaconf.errors import OmegaConfBaseException
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 CONF_DIR = REPO_ROOT / "conf"
@@ -31,6 +42,46 @@ GROUPS = ("dataset", "scale")
 
 class ConfigError(ValueError):
     """A bad override or an unreadable params file."""
+
+
+class Yaml12Loader(yaml.SafeLoader):
+    """PyYAML's safe loader with YAML 1.2 core-schema scalars, as OmegaConf and DVC read YAML.
+
+    PyYAML implements YAML 1.1, where ``1e-3`` is a string, ``yes``/``on`` are booleans, ``017`` is
+    octal and ``1:30`` is 90. Here ``1e-3``, ``1E5`` and ``.5`` are floats, only ``true``/``false``
+    are booleans, ints are decimal (or ``0x``/``0o``), dates stay strings.
+    """
+
+
+_YAML11_SCALARS = {f"tag:yaml.org,2002:{kind}" for kind in ("bool", "int", "float", "timestamp")}
+Yaml12Loader.yaml_implicit_resolvers = {
+    first: [(tag, regexp) for tag, regexp in resolvers if tag not in _YAML11_SCALARS]
+    for first, resolvers in yaml.SafeLoader.yaml_implicit_resolvers.items()
+}
+Yaml12Loader.add_implicit_resolver(
+    "tag:yaml.org,2002:bool", re.compile(r"^(?:true|True|TRUE|false|False|FALSE)$"), list("tTfF"))
+Yaml12Loader.add_implicit_resolver(  # before float: "12" matches both
+    "tag:yaml.org,2002:int", re.compile(r"^(?:[-+]?[0-9]+|0o[0-7]+|0x[0-9a-fA-F]+)$"), list("-+0123456789"))
+Yaml12Loader.add_implicit_resolver(
+    "tag:yaml.org,2002:float",
+    re.compile(r"^(?:[-+]?(?:\.[0-9]+|[0-9]+(?:\.[0-9]*)?)(?:[eE][-+]?[0-9]+)?|[-+]?\.(?:inf|Inf|INF)|\.(?:nan|NaN|NAN))$"),
+    list("-+0123456789."))
+Yaml12Loader.add_constructor(  # decimal, 0x or 0o (PyYAML would read "017" as octal)
+    "tag:yaml.org,2002:int", lambda loader, node: int(node.value, 0 if node.value[:2] in ("0x", "0o") else 10))
+
+
+def parse_value(raw: str) -> Any:
+    """An override's value typed as YAML 1.2 / OmegaConf type it (:class:`Yaml12Loader`); ConfigError if malformed."""
+    try:
+        return yaml.load(raw, Loader=Yaml12Loader)  # noqa: S506 (a safe loader)
+    except yaml.YAMLError as err:
+        reason = getattr(err, "problem", None) or " ".join(str(err).split())
+        raise ConfigError(f"value {raw!r} is not valid YAML ({reason})") from err
+
+
+def dotted(where: str, key: str) -> str:
+    """``where.key`` (just ``key`` at the top level, ``where`` empty)."""
+    return f"{where}.{key}" if where else key
 
 
 def check_number(cfg: Mapping[str, Any], key: str, where: str, *, low: float, high: float | None = None,
@@ -44,21 +95,125 @@ def check_number(cfg: Mapping[str, Any], key: str, where: str, *, low: float, hi
             or (high_open and value == high)):
         upper = "" if high is None else f" and {'<' if high_open else '<='} {high}"
         kind = "an integer" if integer else "a number"
-        raise ConfigError(f"{where}.{key}: expected {kind} {'>' if low_open else '>='} {low}{upper}, got {value!r}")
+        raise ConfigError(f"{dotted(where, key)}: expected {kind} {'>' if low_open else '>='} {low}{upper}, "
+                          f"got {value!r}")
     return value
 
 
+def check_choice(cfg: Mapping[str, Any], key: str, where: str, *, choices: Sequence[Any]) -> Any:
+    """``cfg[key]`` checked to be one of ``choices``; a ConfigError naming the key, the value and the choices."""
+    value = cfg[key]
+    if not any(value == choice and type(value) is type(choice) for choice in choices):
+        raise ConfigError(f"{dotted(where, key)}: expected one of {list(choices)}, got {value!r}")
+    return value
+
+
+def check_type(cfg: Mapping[str, Any], key: str, where: str, *, kind: type, nullable: bool = False) -> Any:
+    """``cfg[key]`` checked to be a ``kind`` (``str``, ``bool``, ``dict``, ``list``) or, if ``nullable``, None."""
+    value = cfg[key]
+    if not (isinstance(value, kind) or (nullable and value is None)):
+        names = {str: "a string", bool: "true or false", dict: "a mapping", list: "a list"}
+        allowed = names.get(kind, kind.__name__) + (" or null" if nullable else "")
+        raise ConfigError(f"{dotted(where, key)}: expected {allowed}, got {value!r}")
+    return value
+
+
+def check_keys(cfg: Any, where: str, names: Sequence[str]) -> Mapping[str, Any]:
+    """``cfg`` checked to be a mapping with exactly the keys ``names``; ConfigError naming the others."""
+    if not isinstance(cfg, Mapping):
+        raise ConfigError(f"{where}: expected a mapping with keys {list(names)}, got {cfg!r}")
+    unknown, missing = sorted(set(cfg) - set(names)), [name for name in names if name not in cfg]
+    if unknown:
+        raise ConfigError(f"{dotted(where, unknown[0])}: unknown key; {where} holds {list(names)}")
+    if missing:
+        raise ConfigError(f"{dotted(where, missing[0])}: missing; {where} holds {list(names)}")
+    return cfg
+
+
+def _allows(hint: Any, value: Any) -> bool:
+    """Whether ``value`` (as read from YAML) fits the type annotation ``hint``."""
+    origin = typing.get_origin(hint)
+    if hint is Any:
+        return True
+    if origin is typing.Literal:
+        return any(value == choice and type(value) is type(choice) for choice in typing.get_args(hint))
+    if origin in (typing.Union, types.UnionType):
+        return any(_allows(arm, value) for arm in typing.get_args(hint))
+    if hint is type(None):
+        return value is None
+    if hint is float:
+        return isinstance(value, int | float) and not isinstance(value, bool)
+    if hint is int:
+        return isinstance(value, int) and not isinstance(value, bool)
+    if origin in (list, tuple, Sequence) or hint in (list, tuple):
+        return isinstance(value, list | tuple)
+    if origin in (dict, Mapping) or hint is dict:
+        return isinstance(value, dict)
+    return isinstance(value, hint) if isinstance(hint, type) else True
+
+
+def _describe(hint: Any) -> str:
+    """An annotation in words for an error message (``an integer or null``, ``one of ['a', 'b']``)."""
+    origin = typing.get_origin(hint)
+    if origin is typing.Literal:
+        return f"one of {list(typing.get_args(hint))}"
+    if origin in (typing.Union, types.UnionType):
+        return " or ".join(_describe(arm) for arm in typing.get_args(hint))
+    names = {type(None): "null", int: "an integer", float: "a number", bool: "true or false", str: "a string"}
+    return names.get(hint, f"a {getattr(origin or hint, '__name__', hint)}")
+
+
+def check_fields(cfg: Any, cls: type, where: str, *, exclude: Sequence[str] = ()) -> Mapping[str, Any]:
+    """``cfg`` checked against the fields of dataclass ``cls``: no unknown key, each value of its field's type.
+
+    Types come from the annotations (``Literal`` ones are choices); keys left out take the field's
+    default; ``exclude`` names fields the stage fills in itself (not params). ConfigError naming the key.
+    """
+    if not isinstance(cfg, Mapping):
+        raise ConfigError(f"{where}: expected a mapping, got {cfg!r}")
+    hints = typing.get_type_hints(cls)
+    known = [f.name for f in dataclasses.fields(cls) if f.name not in exclude]
+    for key, value in cfg.items():
+        if key not in known:
+            raise ConfigError(f"{dotted(where, key)}: unknown key; {where} holds {known}")
+        if not _allows(hints[key], value):
+            raise ConfigError(f"{dotted(where, key)}: expected {_describe(hints[key])}, got {value!r}")
+    return cfg
+
+
+def group_choices(group: str) -> list[str]:
+    """The choices of a Hydra group: the stems of ``conf/<group>/*.yaml``."""
+    return sorted(path.stem for path in (CONF_DIR / group).glob("*.yaml"))
+
+
+def check_group_choice(override: str) -> None:
+    """``group=choice`` checked to name a file ``conf/<group>/<choice>.yaml`` (nothing outside ``conf/``)."""
+    group, _, choice = override.partition("=")
+    allowed = group_choices(group)
+    if choice not in allowed:
+        raise ConfigError(f"{group}={choice!r}: no such choice; {group} is one of {allowed}")
+
+
 def compose_params(overrides: Sequence[str] = ()) -> dict[str, Any]:
-    """Compose ``conf/config.yaml`` with Hydra overrides into a plain, resolved dict."""
-    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3", job_name="motionforge"):
-        cfg = compose(config_name="config", overrides=list(overrides))
-    return OmegaConf.to_container(cfg, resolve=True)
+    """Compose ``conf/config.yaml`` with Hydra overrides into a plain, resolved dict.
+
+    Group choices must be files of ``conf/<group>/``; Hydra's errors become a one-line ConfigError.
+    """
+    for override in overrides:
+        if override.partition("=")[0].lstrip("+") in GROUPS:
+            check_group_choice(override.lstrip("+"))
+    try:
+        with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3", job_name="motionforge"):
+            cfg = compose(config_name="config", overrides=list(overrides))
+        return OmegaConf.to_container(cfg, resolve=True)
+    except (HydraException, OmegaConfBaseException) as err:
+        raise ConfigError(" ".join(str(err).split("\n")[0].split())) from err
 
 
 def read_params(path: Path = PARAMS_PATH) -> dict[str, Any]:
     """Read a params file; raises ConfigError naming the file when it is missing or malformed."""
     try:
-        params = yaml.safe_load(Path(path).read_text(encoding="utf-8"))
+        params = yaml.load(Path(path).read_text(encoding="utf-8"), Loader=Yaml12Loader)  # noqa: S506
     except (OSError, yaml.YAMLError) as err:
         raise ConfigError(f"{path}: cannot read params ({err})") from err
     if not isinstance(params, dict):
@@ -73,13 +228,29 @@ def _split_override(item: str) -> tuple[str, str]:
     return key, value
 
 
-def apply_overrides(params: dict[str, Any], overrides: Sequence[str]) -> dict[str, Any]:
-    """Return a copy of ``params`` with dotted ``key=value`` overrides (values parsed as YAML).
+def _remove(params: dict[str, Any], item: str) -> None:
+    """Apply ``~a.b``: delete key ``a.b``; ConfigError naming it when it does not exist."""
+    parts = item[1:].split(".")
+    node: Any = params
+    for depth, part in enumerate(parts):
+        if not isinstance(node, dict) or part not in node:
+            raise ConfigError(f"unknown config key {'.'.join(parts[: depth + 1])!r} in {item!r}")
+        if depth < len(parts) - 1:
+            node = node[part]
+    del node[parts[-1]]
 
-    A key that does not exist raises ConfigError naming it, unless written ``+key=value``.
+
+def apply_overrides(params: dict[str, Any], overrides: Sequence[str]) -> dict[str, Any]:
+    """Return a copy of ``params`` with dotted ``key=value`` overrides (values typed by :func:`parse_value`).
+
+    A key that does not exist raises ConfigError naming it, unless written ``+key=value``; ``~key``
+    removes one.
     """
-    result = yaml.safe_load(yaml.safe_dump(params))
+    result = copy.deepcopy(params)
     for item in overrides:
+        if item.startswith("~") and "=" not in item:
+            _remove(result, item)
+            continue
         key, raw = _split_override(item)
         add = key.startswith("+")
         parts = key.lstrip("+").split(".")
@@ -93,17 +264,17 @@ def apply_overrides(params: dict[str, Any], overrides: Sequence[str]) -> dict[st
             node = child
         if parts[-1] not in node and not add:
             raise ConfigError(f"unknown config key {key!r} in {item!r} (use +{key}=... to add one)")
-        node[parts[-1]] = yaml.safe_load(raw) if raw else None
+        node[parts[-1]] = parse_value(raw)
     return result
 
 
 def load_params(argv: Sequence[str] | None = None, path: Path = PARAMS_PATH) -> dict[str, Any]:
     """Params for a stage run: ``params.yaml`` (or ``conf/`` when a group is chosen) + overrides."""
     argv = list(sys.argv[1:] if argv is None else argv)
-    groups = [a for a in argv if _split_override(a)[0] in GROUPS]
-    dotted = [a for a in argv if a not in groups]
+    groups = [a for a in argv if a.partition("=")[0] in GROUPS]
+    keys = [a for a in argv if a not in groups]
     params = compose_params(groups) if groups else read_params(path)
-    return apply_overrides(params, dotted)
+    return apply_overrides(params, keys)
 
 
 def restrict_params(params: dict[str, Any], keys: Sequence[str]) -> dict[str, Any]:
@@ -138,7 +309,10 @@ def main(argv: Sequence[str] | None = None) -> None:
     parser.add_argument("--check", action="store_true", help="exit 1 if params.yaml differs")
     parser.add_argument("--out", type=Path, default=PARAMS_PATH)
     args = parser.parse_args(argv)
-    params = compose_params(args.overrides)
+    try:
+        params = compose_params(args.overrides)
+    except ConfigError as err:
+        sys.exit(f"pipelines.config: {err}")
     if args.check:
         if read_params(args.out) != params:
             sys.exit(f"{args.out} differs from the composition of conf/: run `python -m pipelines.config`")

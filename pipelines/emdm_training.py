@@ -22,7 +22,7 @@ from models.emdm import (
     lazy_r1_scale,
 )
 from pipelines.cli import repo_path
-from pipelines.config import check_number
+from pipelines.config import check_fields, check_number
 from pipelines.feature_store import FeatureStore
 from pipelines.recogniser import ActionClips, action_classes
 from pipelines.runner import Components, StepContext, TrainSpec
@@ -121,6 +121,7 @@ def check_section(cfg: dict[str, Any], section: str = "train_emdm") -> None:
     unknown, missing = sorted(set(model) - set(MODEL_KEYS)), [k for k in MODEL_KEYS if k not in model]
     if unknown or missing:
         raise ValueError(f"{section}.model: unknown key(s) {unknown}, missing key(s) {missing}")
+    check_fields(model, EMDMConfig, f"{section}.model")  # types and choices (the sizes' ranges: EMDMConfig)
 
 
 def model_config(cfg: dict[str, Any], feature_dim: int, text_dim: int, num_actions: int = 0,
@@ -172,4 +173,5 @@ def training_stage(section: str, module: str) -> TrainingStage:
         name=section, module=module, config=partial(stage_config, section=section),
         spec=TrainSpec(build=build, dataset=dataset, step=step, collate=collate_trimmed),
         inputs=("features_dir",), params=(section, "features.out", "paths", "ray"), max_workers=1,
+        check=lambda params: check_section(params[section], section),
     )

@@ -50,6 +50,8 @@ class TrainingStage:
         loop_group: dotted params key of the runner settings (default ``<name>.loop``).
         max_workers: the most Ray Train workers the stage can use (None: any); a larger
             ``ray.num_workers`` runs it on this many, with a note on the console.
+        check: validates the stage's own params section before any work starts (a ValueError
+            naming the key); the ``loop`` group and the shared sections are checked anyway.
     """
 
     name: str
@@ -60,6 +62,7 @@ class TrainingStage:
     inputs: tuple[str, ...] = ()
     loop_group: str = ""
     max_workers: int | None = None
+    check: Callable[[dict[str, Any]], object] | None = None
 
     @property
     def loop_key(self) -> str:
@@ -113,6 +116,12 @@ def train(stage: TrainingStage, params: dict[str, Any], config: dict[str, Any] |
     return result
 
 
+def checks(stage: TrainingStage) -> list[Callable[[dict[str, Any]], object]]:
+    """The up-front checks of ``stage``'s params: its ``loop`` group, then its own section."""
+    loop = [lambda params: LoopSettings.parse(param(params, stage.loop_key), stage.loop_key)]
+    return loop + ([stage.check] if stage.check is not None else [])
+
+
 def main(stage: TrainingStage, argv: Sequence[str] | None = None) -> None:
-    """``python -m stages.<name> [key=value ...]`` for a training stage."""
-    run_main(stage.name, lambda params: train(stage, params), stage.params, argv)
+    """``python -m stages.<name> [key=value ...] [--cfg] [--help]`` for a training stage."""
+    run_main(stage.name, lambda params: train(stage, params), stage.params, argv, checks(stage))

@@ -20,6 +20,7 @@ from models.motionlcm import GUIDANCE_EMBED_DIM, lcm_distillation_loss, student_
 from models.vae import LatentDistribution
 from pipelines.checkpoint import load_final_model
 from pipelines.cli import artifacts_dir
+from pipelines.config import check_choice, check_keys, check_number
 from pipelines.latent_cache import collate_words, latent_dataset
 from pipelines.mld_family import load_mld
 from pipelines.runner import Components, StepContext, TrainSpec
@@ -48,14 +49,32 @@ def step(batch: dict, ctx: StepContext) -> dict[str, torch.Tensor]:
     return {"loss": losses["total"].detach()}
 
 
+SECTION = "distill_lcm"
+SECTION_KEYS = ("lr", "weight_decay", "ema_decay", "num_ddim_steps", "w_range", "distance", "huber_c", "loop")
+
+
+def check_section(params: dict[str, Any]) -> None:
+    """The ``distill_lcm`` section checked before any work (its ``loop`` group is the skeleton's); a ValueError
+    naming the key, its value and what is allowed."""
+    cfg = check_keys(params[SECTION], SECTION, SECTION_KEYS)
+    check_number(cfg, "lr", SECTION, low=0.0, low_open=True)
+    check_number(cfg, "weight_decay", SECTION, low=0.0)
+    check_number(cfg, "ema_decay", SECTION, low=0.0, high=1.0)
+    check_number(cfg, "num_ddim_steps", SECTION, low=1, integer=True)
+    w_range = cfg["w_range"]
+    if not (isinstance(w_range, list | tuple) and len(w_range) == 2
+            and all(isinstance(w, int | float) and not isinstance(w, bool) for w in w_range)
+            and 0 <= w_range[0] <= w_range[1]):
+        raise ValueError(f"{SECTION}.w_range: expected [w_min, w_max] with 0 <= w_min <= w_max, got {w_range!r}")
+    check_choice(cfg, "distance", SECTION, choices=("huber", "l2"))
+    check_number(cfg, "huber_c", SECTION, low=0.0, low_open=True)
+
+
 def stage_config(params: dict[str, Any]) -> dict[str, Any]:
     """The stage's loop-config keys: the teacher's data settings and the distillation settings."""
-    cfg = params["distill_lcm"]
+    check_section(params)  # again: a sweep trial changes the section
+    cfg = params[SECTION]
     w_range = cfg["w_range"]
-    if not (isinstance(w_range, list | tuple) and len(w_range) == 2 and 0 <= w_range[0] <= w_range[1]):
-        raise ValueError(f"distill_lcm.w_range: expected [w_min, w_max] with 0 <= w_min <= w_max, got {w_range!r}")
-    if cfg["distance"] not in ("huber", "l2"):
-        raise ValueError(f"distill_lcm.distance: {cfg['distance']!r} is not huber or l2")
     teacher_dir = artifacts_dir(params) / "train_mld"
     teacher = load_final_model(teacher_dir)["config"]
     return {
@@ -71,7 +90,7 @@ def stage_config(params: dict[str, Any]) -> dict[str, Any]:
 STAGE = TrainingStage(
     name="distill_lcm", module=__name__, config=stage_config,
     spec=TrainSpec(build=build, dataset=latent_dataset, step=step, collate=collate_words),
-    inputs=("teacher_dir", "features_dir", "vae_dir"), params=("distill_lcm", "paths", "ray"),
+    inputs=("teacher_dir", "features_dir", "vae_dir"), params=(SECTION, "paths", "ray"), check=check_section,
 )
 
 

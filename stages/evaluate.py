@@ -36,9 +36,10 @@ from data.render import render_animation
 from data.skeleton import get_skeleton
 from models.generator import Generator, Reconstructor
 from pipelines.action_evaluation import ActionGenerator, evaluate_action_rows, load_recogniser
-from pipelines.cli import artifacts_dir, repo_path, run_main
+from pipelines.cli import HELP_FLAGS, artifacts_dir, repo_path, run_main
+from pipelines.config import check_fields, check_keys, check_number, check_type
 from pipelines.evaluation import EvalConfig, evaluate, load_evaluator, load_references, references, save_references
-from pipelines.registry import EvalContext, family
+from pipelines.registry import FAMILIES, EvalContext, family
 
 REAL = "real"
 #: Params every evaluation stage reads; a family's stage also reads its registry entry's ``params``.
@@ -46,6 +47,7 @@ PARAMS = ("evaluate", "features.out", "data.name", "data.skeleton", "paths.artif
 REFERENCES = "references.npz"
 #: The evaluator stage's output holding the action recogniser.
 RECOGNISER = "train_evaluator_recogniser"
+USAGE = (f"usage: python -m stages.evaluate <{' | '.join([REAL, *FAMILIES])}> [key=value ...] [--cfg] [--help]")
 
 
 def eval_config(section: dict[str, Any]) -> EvalConfig:
@@ -55,6 +57,20 @@ def eval_config(section: dict[str, Any]) -> EvalConfig:
     if unknown:
         raise ValueError(f"unknown evaluate param(s): {sorted(unknown)}")
     return EvalConfig(**section)
+
+
+def check_section(params: dict[str, Any]) -> None:
+    """The ``evaluate`` section checked before any work; a ValueError naming the key, its value and what is allowed."""
+    cfg = params["evaluate"]
+    check_fields({key: value for key, value in cfg.items() if key != "samples"}, EvalConfig, "evaluate")
+    for key in ("replications", "group_size", "unit_length"):
+        check_number(cfg, key, "evaluate", low=1, integer=True)
+    for key in ("diversity_times", "mm_texts", "mm_repeats", "mm_times", "timing_sentences", "seed"):
+        check_number(cfg, key, "evaluate", low=0, integer=True)
+    samples = check_keys(cfg.get("samples"), "evaluate.samples", ("rows", "length", "prompts"))
+    check_type(samples, "rows", "evaluate.samples", kind=list)
+    check_number(samples, "length", "evaluate.samples", low=4, high=196, integer=True)
+    check_type(samples, "prompts", "evaluate.samples", kind=list)
 
 
 def render_samples(rows: Sequence[Generator], ctx: EvalContext, out: Path) -> None:
@@ -113,8 +129,11 @@ def run(name: str, params: dict[str, Any]) -> dict[str, dict[str, float]]:
 
 def main(argv: Sequence[str] | None = None) -> None:
     argv = list(sys.argv[1:] if argv is None else argv)
-    if not argv or "=" in argv[0]:
-        sys.exit("usage: python -m stages.evaluate <real | model family> [key=value ...]")
+    if argv and argv[0] in HELP_FLAGS:
+        print(f"{USAGE}\n  <name> --help lists the keys that evaluation reads")
+        return
+    if not argv or "=" in argv[0] or argv[0].startswith("-"):
+        sys.exit(USAGE)
     name, overrides = argv[0], argv[1:]
     keys = PARAMS
     if name != REAL:
@@ -129,7 +148,7 @@ def main(argv: Sequence[str] | None = None) -> None:
             f"{row} " + (f"accuracy {m['Accuracy']:.3f}" if "Accuracy" in m else f"R@3 {m['R_precision_top3']:.3f}")
             + f" FID {m['FID']:.3f}" for row, m in table.items()))
 
-    run_main(f"eval_{name}", run_and_print, keys, overrides)
+    run_main(f"eval_{name}", run_and_print, keys, overrides, checks=[check_section])
 
 
 if __name__ == "__main__":

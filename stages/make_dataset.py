@@ -31,6 +31,7 @@ from data.render import contact_sheet, render_animation
 from data.skeleton import HUMANML3D
 from data.synthetic import SyntheticConfig, SyntheticMotion, dataset_stats, generate, make_splits
 from pipelines.cli import artifacts_dir, run_main
+from pipelines.config import check_fields
 
 SHEET_PANELS = 20
 
@@ -79,6 +80,12 @@ PARAMS = ("seed", "synthetic", "paths.artifacts")
 OUT = "dataset"
 
 
+def check_section(params: dict[str, Any]) -> None:
+    """The ``synthetic`` section checked before any work: types (SyntheticConfig's fields), then its ranges."""
+    check_fields(params["synthetic"], SyntheticConfig, "synthetic")
+    SyntheticConfig.from_params(params["synthetic"])
+
+
 def run(params: dict[str, Any]) -> dict[str, Any]:
     """The stage with params: the dataset under ``<paths.artifacts>/dataset``; returns its statistics."""
     config = SyntheticConfig.from_params(params["synthetic"])
@@ -87,7 +94,7 @@ def run(params: dict[str, Any]) -> dict[str, Any]:
 
 def main(argv: Sequence[str] | None = None) -> None:
     """Run the stage with params.yaml and ``key=value`` overrides."""
-    run_main("make_dataset", run, PARAMS, argv)
+    run_main("make_dataset", run, PARAMS, argv, checks=[check_section])
 
 
 if __name__ == "__main__":

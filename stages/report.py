@@ -12,6 +12,7 @@ from __future__ import annotations
 import json
 import os
 import shutil
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -61,5 +62,10 @@ def run(params: dict[str, Any]) -> dict[str, dict[str, float]]:
     return table
 
 
+def main(argv: Sequence[str] | None = None) -> None:
+    """``python -m stages.report [key=value ...] [--cfg] [--help]``."""
+    run_main("report", run, PARAMS, argv)
+
+
 if __name__ == "__main__":
-    run_main("report", run, PARAMS)
+    main()

@@ -20,6 +20,7 @@ import sys
 from collections.abc import Sequence
 from typing import Any
 
+from pipelines.cli import HELP_FLAGS
 from pipelines.config import REPO_ROOT, ConfigError, load_params
 from pipelines.sweep import (
     ERROR,
@@ -61,6 +62,9 @@ def _report(result: SweepResult) -> None:
 def main(argv: Sequence[str] | None = None) -> None:
     """Run the sweep; exit 1 if every trial failed or it was interrupted, 2 on a config error."""
     argv = list(sys.argv[1:] if argv is None else argv)
+    if argv and argv[0] in HELP_FLAGS:
+        print(__doc__.strip())
+        return
     if not argv or "=" in argv[0] or argv[0].startswith("-"):
         sys.stderr.write(USAGE + "\n")
         sys.exit(2)

@@ -24,6 +24,7 @@ from models.controlnet import ControlConfig, MotionControlNet, controlnet_loss
 from models.vae import LatentDistribution
 from pipelines.checkpoint import load_final_model
 from pipelines.cli import artifacts_dir
+from pipelines.config import check_fields, check_keys, check_number
 from pipelines.feature_store import FeatureStore
 from pipelines.latent_cache import collate_words, control_dataset
 from pipelines.mld_family import load_mld, load_motionlcm, load_vae
@@ -66,11 +67,29 @@ def hint_statistics(features_dir: Path) -> tuple[list[float], list[float]]:
     return joints.mean(0).tolist(), np.maximum(joints.std(0), 1e-3).tolist()
 
 
+SECTION = "train_controlnet"
+SECTION_KEYS = ("lr", "weight_decay", "control_weight", "train_joints", "encoder", "loop")
+
+
+def check_section(params: dict[str, Any]) -> None:
+    """The ``train_controlnet`` section checked before any work (its ``loop`` group is the skeleton's); a
+    ValueError naming the key, its value and what is allowed."""
+    cfg = check_keys(params[SECTION], SECTION, SECTION_KEYS)
+    check_number(cfg, "lr", SECTION, low=0.0, low_open=True)
+    check_number(cfg, "weight_decay", SECTION, low=0.0)
+    check_number(cfg, "control_weight", SECTION, low=0.0)
+    joints = cfg["train_joints"]
+    try:
+        joint_ids(joints if isinstance(joints, list) else [joints])
+    except (TypeError, ValueError) as err:
+        raise ValueError(f"{SECTION}.train_joints: {err}") from err
+    check_fields(cfg["encoder"], ControlConfig, f"{SECTION}.encoder",
+                 exclude=("joints_num", "hint_mean", "hint_std", "train_joints"))
+
+
 def stage_config(params: dict[str, Any]) -> dict[str, Any]:
     """The stage's loop-config keys: the student's data settings, the encoder and the loss settings."""
-    cfg = params["train_controlnet"]
-    if cfg["control_weight"] < 0:
-        raise ValueError(f"train_controlnet.control_weight: must be >= 0, got {cfg['control_weight']}")
+    cfg = params[SECTION]
     student_dir = artifacts_dir(params) / "distill_lcm"
     student = load_final_model(student_dir)["config"]
     mean, std = hint_statistics(Path(student["features_dir"]))
@@ -88,7 +107,8 @@ def stage_config(params: dict[str, Any]) -> dict[str, Any]:
 STAGE = TrainingStage(
     name="train_controlnet", module=__name__, config=stage_config,
     spec=TrainSpec(build=build, dataset=control_dataset, step=step, collate=collate_words),
-    inputs=("student_dir", "teacher_dir", "features_dir", "vae_dir"), params=("train_controlnet", "paths", "ray"),
+    inputs=("student_dir", "teacher_dir", "features_dir", "vae_dir"), params=(SECTION, "paths", "ray"),
+    check=check_section,
 )
 
 

@@ -21,6 +21,7 @@ evaluator's own normalisation statistics travel in the saved model's config, so
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -28,20 +29,33 @@ import torch
 
 from data.evaluator_data import CaptionMotionPairs, MovementWindows
 from data.vocab import WordVocab, load_glove
-from models.evaluator import EvaluatorConfig, MovementAutoencoder, T2MEvaluator, contrastive_loss, movement_ae_loss
+from models.evaluator import (
+    PROFILE_SIZES,
+    EvaluatorConfig,
+    MovementAutoencoder,
+    T2MEvaluator,
+    contrastive_loss,
+    movement_ae_loss,
+)
 from pipelines.checkpoint import load_final_model
-from pipelines.cli import artifacts_dir, repo_path, run_main
+from pipelines.cli import artifacts_dir, param, repo_path, run_main
+from pipelines.config import check_choice, check_keys, check_number, check_type
 from pipelines.evaluation import build_evaluator
 from pipelines.feature_store import FeatureStore
+from pipelines.recogniser import GROUP as RECOGNISER_GROUP
 from pipelines.recogniser import SPEC as RECOGNISER_SPEC
+from pipelines.recogniser import check_section as check_recogniser
 from pipelines.recogniser import recogniser_config
 from pipelines.runner import Components, StepContext, TrainSpec
-from pipelines.stage import TrainingStage, loop_config, train
+from pipelines.stage import TrainingStage, checks, loop_config, train
 
 if TYPE_CHECKING:
     from pipelines.sweep import SweepTarget
 
-PARAMS = ("train_evaluator", "features.out", "paths", "ray")
+SECTION = "train_evaluator"
+PARAMS = (SECTION, "features.out", "paths", "ray")
+SECTION_KEYS = ("profile", "lr", "margin", "max_words", "min_word_count", "glove_path", "movement_window",
+                "movement_loop", "loop", "recogniser")
 
 
 def _new_evaluator(config: dict) -> T2MEvaluator:
@@ -106,10 +120,22 @@ def matching_config(params: dict[str, Any]) -> dict[str, Any]:
                                      "movement_dir": str(artifacts_dir(params) / "train_evaluator_movement")}
 
 
+def check_section(params: dict[str, Any]) -> None:
+    """The ``train_evaluator`` section less its loop groups and ``recogniser`` (each checked by its own
+    run), before any work; a ValueError naming the key, its value and what is allowed."""
+    cfg = check_keys(params[SECTION], SECTION, SECTION_KEYS)
+    check_choice(cfg, "profile", SECTION, choices=sorted(PROFILE_SIZES))
+    check_number(cfg, "lr", SECTION, low=0.0, low_open=True)
+    check_number(cfg, "margin", SECTION, low=0.0)
+    for key in ("max_words", "min_word_count", "movement_window"):
+        check_number(cfg, key, SECTION, low=1, integer=True)
+    check_type(cfg, "glove_path", SECTION, kind=str, nullable=True)
+
+
 MOVEMENT = TrainingStage(
     name="train_evaluator_movement", module=__name__, params=PARAMS, config=movement_config,
     spec=TrainSpec(build=build_movement, dataset=MovementWindows, step=movement_step),
-    inputs=("features_dir",), loop_group="train_evaluator.movement_loop",
+    inputs=("features_dir",), loop_group="train_evaluator.movement_loop", check=check_section,
 )
 MATCHING = TrainingStage(
     name="train_evaluator", module=__name__, params=PARAMS, config=matching_config,
@@ -119,6 +145,7 @@ MATCHING = TrainingStage(
 RECOGNISER = TrainingStage(
     name="train_evaluator_recogniser", module=__name__, params=PARAMS, config=recogniser_config,
     spec=RECOGNISER_SPEC, inputs=("features_dir",), loop_group="train_evaluator.recogniser.loop",
+    check=lambda params: check_recogniser(param(params, RECOGNISER_GROUP)),
 )
 
 
@@ -155,5 +182,10 @@ def sweep_target(params: dict[str, Any]) -> SweepTarget:
                        prerequisite=movement_prerequisite)
 
 
+def main(argv: Sequence[str] | None = None) -> None:
+    """``python -m stages.train_evaluator [key=value ...] [--cfg] [--help]``: every part's params checked first."""
+    run_main(SECTION, run, PARAMS, argv, checks=[*checks(MOVEMENT), *checks(MATCHING), *checks(RECOGNISER)])
+
+
 if __name__ == "__main__":
-    run_main("train_evaluator", run, PARAMS)
+    main()

@@ -21,6 +21,7 @@ from models.mld import MLDConfig, MLDDenoiser, mld_loss
 from models.vae import LatentDistribution
 from pipelines.checkpoint import load_final_model
 from pipelines.cli import artifacts_dir, repo_path
+from pipelines.config import check_choice, check_fields, check_keys, check_number, check_type
 from pipelines.feature_store import FeatureStore
 from pipelines.latent_cache import collate_words, latent_dataset, measure_latent_std
 from pipelines.mld_family import noise_schedule
@@ -43,6 +44,30 @@ def step(batch: dict, ctx: StepContext) -> dict[str, torch.Tensor]:
                       text_mask=batch.get("token_mask"))
     ctx.update(losses["total"])
     return {"loss": losses["total"].detach()}
+
+
+SECTION = "train_mld"
+SECTION_KEYS = ("lr", "weight_decay", "crop_frames", "p_uncond", "ema_decay", "normalize_latents", "beta_schedule",
+                "beta_start", "beta_end", "num_train_timesteps", "model", "loop")
+#: MLDConfig fields the stage fills in from the VAE and the feature store (not params).
+DERIVED_MODEL_KEYS = ("latent_tokens", "latent_dim", "text_dim", "token_dim", "time_cond_dim", "latent_scale")
+
+
+def check_section(params: dict[str, Any]) -> None:
+    """The ``train_mld`` section checked before any work (its ``loop`` group is the skeleton's); a ValueError
+    naming the key, its value and what is allowed."""
+    cfg = check_keys(params[SECTION], SECTION, SECTION_KEYS)
+    check_number(cfg, "lr", SECTION, low=0.0, low_open=True)
+    check_number(cfg, "weight_decay", SECTION, low=0.0)
+    check_number(cfg, "crop_frames", SECTION, low=1, integer=True)
+    check_number(cfg, "p_uncond", SECTION, low=0.0, high=1.0)
+    check_number(cfg, "ema_decay", SECTION, low=0.0, high=1.0, high_open=True)
+    check_type(cfg, "normalize_latents", SECTION, kind=bool)
+    check_choice(cfg, "beta_schedule", SECTION, choices=("linear", "scaled_linear"))
+    check_number(cfg, "beta_start", SECTION, low=0.0, low_open=True)
+    check_number(cfg, "beta_end", SECTION, low=cfg["beta_start"], low_open=True, high=1.0, high_open=True)
+    check_number(cfg, "num_train_timesteps", SECTION, low=1, integer=True)
+    check_fields(cfg["model"], MLDConfig, f"{SECTION}.model", exclude=DERIVED_MODEL_KEYS)
 
 
 def stage_config(params: dict[str, Any]) -> dict[str, Any]:
@@ -73,7 +98,7 @@ STAGE = TrainingStage(
     name="train_mld", module=__name__, config=stage_config,
     spec=TrainSpec(build=build, dataset=latent_dataset, step=step, collate=collate_words),
     inputs=("features_dir", "vae_dir"),
-    params=("train_mld", "features.out", "paths", "ray"),
+    params=(SECTION, "features.out", "paths", "ray"), check=check_section,
 )
 
 if __name__ == "__main__":

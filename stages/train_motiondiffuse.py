@@ -144,6 +144,7 @@ STAGE = TrainingStage(
     name=SECTION, module=__name__, config=stage_config,
     spec=TrainSpec(build=build, dataset=dataset, step=step, collate=collate_trimmed_words),
     inputs=("features_dir",), params=(SECTION, "features.out", "paths", "ray"),
+    check=lambda params: check_section(params[SECTION]),
 )
 
 if __name__ == "__main__":

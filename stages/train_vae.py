@@ -16,6 +16,7 @@ import torch
 from data.motion_dataset import MotionTextDataset, collate_trimmed
 from models.vae import MotionVAE, MotionVAEConfig, vae_loss
 from pipelines.cli import repo_path
+from pipelines.config import check_choice, check_fields, check_keys, check_number
 from pipelines.feature_store import FeatureStore
 from pipelines.runner import Components, StepContext, TrainSpec
 from pipelines.stage import TrainingStage, main
@@ -42,6 +43,22 @@ def step(batch: dict, ctx: StepContext) -> dict[str, torch.Tensor]:
             "joint": losses["joint"].detach(), "kl": losses["kl"].detach()}
 
 
+SECTION = "train_vae"
+SECTION_KEYS = ("lr", "weight_decay", "crop_frames", "kl_weight", "joint_weight", "joint_space", "model", "loop")
+
+
+def check_section(params: dict[str, Any]) -> None:
+    """The ``train_vae`` section checked before any work (its ``loop`` group is the skeleton's); a ValueError
+    naming the key, its value and what is allowed."""
+    cfg = check_keys(params[SECTION], SECTION, SECTION_KEYS)
+    check_number(cfg, "lr", SECTION, low=0.0, low_open=True)
+    for key in ("weight_decay", "kl_weight", "joint_weight"):
+        check_number(cfg, key, SECTION, low=0.0)
+    check_number(cfg, "crop_frames", SECTION, low=1, integer=True)
+    check_choice(cfg, "joint_space", SECTION, choices=("global", "root"))
+    check_fields(cfg["model"], MotionVAEConfig, f"{SECTION}.model", exclude=("feature_dim",))
+
+
 def stage_config(params: dict[str, Any]) -> dict[str, Any]:
     """The stage's loop-config keys: absolute paths, the dataset statistics and the model sizes."""
     cfg = params["train_vae"]
@@ -57,7 +74,8 @@ def stage_config(params: dict[str, Any]) -> dict[str, Any]:
 
 STAGE = TrainingStage(
     name="train_vae", module=__name__, spec=TrainSpec(build=build, dataset=dataset, step=step, collate=collate_trimmed),
-    config=stage_config, inputs=("features_dir",), params=("train_vae", "features.out", "paths", "ray"),
+    config=stage_config, inputs=("features_dir",), params=(SECTION, "features.out", "paths", "ray"),
+    check=check_section,
 )
 
 if __name__ == "__main__":

@@ -7,6 +7,7 @@ import math
 import numpy as np
 import pytest
 import torch
+from tolerance import float32_atol
 from torch import nn
 
 from data.vocab import NUM_POS, OTHER
@@ -174,7 +175,7 @@ def test_embed_motion_ignores_contacts_and_frames_beyond_length() -> None:
     # extra padding does not matter once the window exceeds 4 * (length // 4)
     longer = torch.cat([x, torch.randn(6, 8, D)], dim=1)
     out_longer = ev.embed_motion(longer, lengths)
-    torch.testing.assert_close(out_longer[1:], out[1:], rtol=1e-5, atol=1e-6)
+    torch.testing.assert_close(out_longer[1:], out[1:], rtol=1e-5, atol=float32_atol(out))  # tests/tolerance.py
     # ... but a motion filling the whole window (row 0: length 32 = T) sees the conv's own padding instead
     assert not torch.allclose(out_longer[0], out[0], rtol=1e-5, atol=1e-6)
     # a time axis that is not a multiple of 4 is padded: T = 30 equals T = 32 for lengths <= 28
@@ -200,7 +201,7 @@ def test_embed_motion_follows_batch_permutation() -> None:
     perm = torch.randperm(7, generator=torch.Generator().manual_seed(3))
     torch.testing.assert_close(ev.embed_motion(x[perm], lengths[perm]), out[perm])
     # each row equals the motion embedded alone
-    torch.testing.assert_close(ev.embed_motion(x[3:4, :16], lengths[3:4]), out[3:4], rtol=1e-5, atol=1e-6)
+    torch.testing.assert_close(ev.embed_motion(x[3:4, :16], lengths[3:4]), out[3:4], rtol=1e-5, atol=float32_atol(out))
 
 
 def test_normalization_buffers_apply_feat_bias_once() -> None:

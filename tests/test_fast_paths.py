@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
+from tolerance import float32_atol
 from torch import nn
 
 from data.features import recover_from_ric, recover_root_rot_pos
@@ -27,7 +28,7 @@ def test_batch_first_attention_matches_multihead_attention(cross: bool, train: b
     got = batch_first_attention(mha, x, memory, mask)
     got_grads = torch.autograd.grad(got.square().sum(), params)
 
-    torch.testing.assert_close(got, expected, rtol=0, atol=1e-6)
+    torch.testing.assert_close(got, expected, rtol=0, atol=float32_atol(expected))  # tests/tolerance.py
     for g, e in zip(got_grads, expected_grads, strict=True):
         torch.testing.assert_close(g, e, rtol=1e-5, atol=1e-5)
 

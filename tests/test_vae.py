@@ -8,6 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from tolerance import float32_atol
 
 from models.vae import (
     LatentDistribution,
@@ -85,17 +86,18 @@ def test_padding_does_not_change_valid_outputs(overrides: dict[str, object]) -> 
     valid = torch.arange(12)[None, :] < lengths[:, None]
     x_other = torch.where(valid[..., None], x, 100.0 * torch.randn(3, 12, D, generator=_gen(2)))
     d1, d2 = vae.encode_distribution(x, lengths), vae.encode_distribution(x_other, lengths)
-    torch.testing.assert_close(d1.mu, d2.mu, atol=1e-6, rtol=0)
-    torch.testing.assert_close(d1.logvar, d2.logvar, atol=1e-6, rtol=0)
+    # padding is masked: equal in exact arithmetic, rounding of other kernels only (tests/tolerance.py)
+    torch.testing.assert_close(d1.mu, d2.mu, atol=float32_atol(d1.mu), rtol=0)
+    torch.testing.assert_close(d1.logvar, d2.logvar, atol=float32_atol(d1.logvar), rtol=0)
     # extra padding frames (a longer batch) change nothing either
     d3 = vae.encode_distribution(torch.cat([x, torch.randn(3, 5, D)], dim=1), lengths)
-    torch.testing.assert_close(d1.mu, d3.mu, atol=1e-6, rtol=0)
+    torch.testing.assert_close(d1.mu, d3.mu, atol=float32_atol(d1.mu), rtol=0)
 
     r1 = vae.decode(vae.encode(x, lengths, _gen(3))[0], lengths)
     r2 = vae.decode(vae.encode(x_other, lengths, _gen(3))[0], lengths)
-    torch.testing.assert_close(r1, r2, atol=1e-6, rtol=0)
+    torch.testing.assert_close(r1, r2, atol=float32_atol(r1), rtol=0)
     r3 = vae.decode(vae.encode(x, lengths, _gen(3))[0], lengths, num_frames=20)
-    torch.testing.assert_close(r1, r3[:, :12], atol=1e-6, rtol=0)
+    torch.testing.assert_close(r1, r3[:, :12], atol=float32_atol(r1), rtol=0)
 
 
 def test_decode_zeroes_padded_frames() -> None:
