@@ -40,6 +40,7 @@ from __future__ import annotations
 import contextlib
 import hashlib
 import json
+import math
 import os
 import shutil
 import sys
@@ -88,6 +89,14 @@ class Components:
 
 
 StepFn = Callable[[Any, "StepContext"], Mapping[str, "float | torch.Tensor"]]
+
+
+class TrainingError(ValueError):
+    """The training itself went wrong in a way that repeats on every attempt (e.g. a NaN loss).
+
+    A ``ValueError``, so a stage's command line prints it as one line; never retried (see
+    :func:`fit_retrying`).
+    """
 
 
 @dataclass(frozen=True)
@@ -194,7 +203,8 @@ class RayOptions:
         num_workers: Train workers; 0 runs the loop in-process without Ray.
         use_gpu: "auto" (GPUs if the cluster has one per worker), True or False.
         cpus_per_worker: logical CPUs per worker (also its torch thread count).
-        max_failures: worker-group restarts from the latest checkpoint.
+        max_failures: restarts from the latest checkpoint after a worker crash (-1: no limit);
+            deterministic errors are never retried (:func:`fit_retrying`).
         checkpoint_every: steps between checkpoints (not part of the run name).
         report_every: steps between metric-only reports (e.g. for Tune); 0 = only at
             checkpoints. Keep it coarse: each report may wait for the controller's poll.
@@ -565,6 +575,57 @@ def _checkpoint(run: _Run, session: Session, metrics: dict[str, Any]) -> None:
         session.report(metrics, directory)
 
 
+class FiniteGuard:
+    """Stops the run at the first non-finite loss or gradient norm of any step.
+
+    Each step's metrics (the stage's losses and, where clipping computes it, ``grad_norm/<opt>``)
+    are stacked into one small tensor on their device; one ``torch.isfinite`` tests them.
+    Reading the answer back is a host sync, so on a CPU device (where it costs nothing) it is read
+    after every step, and on an accelerator only when the loop syncs anyway: when it writes a log
+    row (every ``log_every`` steps and before every checkpoint or report). The run then stops within
+    one logging window of the bad step, names that step, and never checkpoints or writes a model
+    after it.
+    """
+
+    def __init__(self, run_name: str, device: torch.device) -> None:
+        self.run_name = run_name
+        self.eager = device.type == "cpu"
+        self.pending: list[tuple[int, list[str], torch.Tensor]] = []
+
+    def add(self, step: int, metrics: Mapping[str, Any]) -> None:
+        """Record step ``step``'s metrics (checked at once on CPU, else at the next :meth:`check`).
+
+        Plain numbers are checked here; tensors are stacked on their device, without a sync.
+        """
+        names = [name for name, value in metrics.items() if isinstance(value, torch.Tensor)]
+        for name, value in metrics.items():
+            if name not in names and not math.isfinite(value):
+                self._fail(step, name, value)
+        if names:
+            device = metrics[names[0]].device
+            values = torch.stack([metrics[name].detach().reshape(()).to(device, torch.float32) for name in names])
+            self.pending.append((step, names, values))
+        if self.eager:
+            self.check()
+
+    def check(self) -> None:
+        """Raise :class:`TrainingError` for the first pending step with a non-finite value."""
+        if not self.pending:
+            return
+        pending, self.pending = self.pending, []
+        if bool(torch.isfinite(torch.cat([values for _, _, values in pending])).all()):
+            return
+        for step, names, values in pending:
+            for name, value in zip(names, values.tolist(), strict=True):
+                if not math.isfinite(value):
+                    self._fail(step, name, value)
+
+    def _fail(self, step: int, name: str, value: float) -> None:
+        what = "gradient norm" if name.startswith("grad_norm/") else "loss"
+        raise TrainingError(f"{self.run_name}: non-finite {what} {name!r} = {value} at step {step}; "
+                            f"training stopped, no model written")
+
+
 def _train_step(spec: TrainSpec, run: _Run, ctx: StepContext, batch: Any) -> dict[str, Any]:
     """One step: the stage's step, then schedulers and EMAs."""
     ctx.step, ctx.epoch = run.pos.step, run.pos.epoch
@@ -593,14 +654,17 @@ def train_loop(session: Session, spec: TrainSpec, config: dict, info: RunInfo) -
     ctx = StepContext(config, run.models, run.optimizers, run.emas, run.frozen, session.device,
                       session.rank, session.world_size, s.grad_clip)
     progress, window = tracking.Progress(info.stage, run.pos.step, s.max_steps), _Window()
+    guard = FiniteGuard(info.run_name, session.device)
     last_checkpoint = -1
     try:
         while run.pos.step < s.max_steps:
             for batch in _epoch_loader(dataset, spec, s, session, run.pos):
-                window.add(_train_step(spec, run, ctx, batch))
+                metrics = _train_step(spec, run, ctx, batch)
+                guard.add(run.pos.step, metrics)
+                window.add(metrics)
                 run.pos.advance(per_epoch)
                 last_checkpoint = _after_step(run, session, s, info, window, progress, wandb_run,
-                                              last_checkpoint)
+                                              last_checkpoint, guard)
                 if run.pos.step >= s.max_steps:
                     break
         if last_checkpoint != run.pos.step:  # e.g. resumed at the end: report a final one
@@ -611,13 +675,18 @@ def train_loop(session: Session, spec: TrainSpec, config: dict, info: RunInfo) -
 
 
 def _after_step(run: _Run, session: Session, s: LoopSettings, info: RunInfo, window: _Window,
-                progress: tracking.Progress, wandb_run: Any, last_checkpoint: int) -> int:
-    """Log, checkpoint and report as the step count asks; returns the last checkpoint step."""
+                progress: tracking.Progress, wandb_run: Any, last_checkpoint: int, guard: FiniteGuard) -> int:
+    """Log, checkpoint and report as the step count asks; returns the last checkpoint step.
+
+    Every log row, checkpoint and report is preceded by the guard's check: nothing non-finite
+    is ever logged as a result or saved.
+    """
     step = run.pos.step
     is_last = step >= s.max_steps
     do_ckpt = is_last or step % max(1, info.checkpoint_every) == 0
     do_report = info.report_every > 0 and step % info.report_every == 0
     if is_last or do_ckpt or do_report or step % max(1, s.log_every) == 0:
+        guard.check()
         row = _log_row(run, window, progress, s, session, wandb_run)
         metrics = {k: v for k, v in row.items() if isinstance(v, int | float)}
         if do_ckpt:
@@ -728,12 +797,14 @@ def _run_info(stage: str, name: str, opts: RayOptions, storage: str, use_gpu: bo
 
 def build_trainer(stage: str, spec: TrainSpec, loop_config: Mapping[str, Any],
                   ray_cfg: Mapping[str, Any] | RayOptions, storage: str | None = None, *,
-                  callbacks: Sequence[Any] = (), run_name: str | None = None) -> Any:
+                  callbacks: Sequence[Any] = (), run_name: str | None = None,
+                  max_failures: int | None = None) -> Any:
     """A ready-to-``fit()`` ``TorchTrainer`` (Ray must be initialised).
 
     ``callbacks`` are Ray Train ``UserCallback``s, e.g. Tune's ``TuneReportCallback``
     when a Tune driver function wraps this; ``run_name`` overrides the params hash (e.g.
-    ``f"{stage}-{trial_id}"``).
+    ``f"{stage}-{trial_id}"``); ``max_failures`` overrides the options' count of Ray's own
+    retries (:func:`fit_retrying` passes 0 and retries crashes itself).
     """
     import ray
     import ray.train
@@ -755,21 +826,78 @@ def build_trainer(stage: str, spec: TrainSpec, loop_config: Mapping[str, Any],
             placement_strategy=opts.placement_strategy),
         run_config=ray.train.RunConfig(
             name=name, storage_path=storage,
-            failure_config=ray.train.FailureConfig(max_failures=opts.max_failures),
+            failure_config=ray.train.FailureConfig(
+                max_failures=opts.max_failures if max_failures is None else max_failures),
             checkpoint_config=ray.train.CheckpointConfig(num_to_keep=2),
             callbacks=list(callbacks)),
     )
 
 
+#: Worker errors that recur on every attempt (bad config, wrong types, missing files, a NaN loss).
+DETERMINISTIC_ERRORS: tuple[type[BaseException], ...] = (
+    ValueError, TypeError, LookupError, AttributeError, ImportError, NotImplementedError, FileNotFoundError)
+
+
+def deterministic_cause(error: BaseException) -> BaseException | None:
+    """The first (lowest-rank) worker exception of a failed Ray Train run that retrying cannot fix.
+
+    Ray Train hands the driver a ``WorkerGroupError`` whose ``worker_failures`` map each failed
+    rank to a wrapper of the worker's own exception (``_base_exc``); None when no worker raised
+    one of :data:`DETERMINISTIC_ERRORS` (a crash, a lost node, a ``RuntimeError``).
+    """
+    failures = getattr(error, "worker_failures", None) or {}
+    for rank in sorted(failures):
+        cause = getattr(failures[rank], "_base_exc", failures[rank])
+        if isinstance(cause, DETERMINISTIC_ERRORS):
+            return cause
+    return None
+
+
+def fit_retrying(make_trainer: Callable[[], Any], max_failures: int, run_name: str) -> Any:
+    """``make_trainer().fit()``; after a worker crash, fitted again, at most ``max_failures`` times.
+
+    Ray Train's ``FailureConfig(max_failures)`` restarts the worker group after *any* worker
+    error, and its failure policy cannot be told which errors are deterministic (Ray 2.x builds
+    its default policy internally; a callback can watch failures but not veto a retry). A config
+    error or a NaN loss would then run, fail and wait through ``max_failures`` restarts. So
+    ``make_trainer`` builds trainers with Ray's retries off, and this loop decides instead:
+
+    * a worker exception in :data:`DETERMINISTIC_ERRORS` (:class:`TrainingError` included) is
+      raised at once, unwrapped, so a stage prints it as its one-line error;
+    * any other failure starts the run again under the same name, which resumes from its latest
+      checkpoint in the Ray storage, exactly as Ray's own restart would (-1: no limit).
+    """
+    import ray.train
+
+    failures = 0
+    while True:
+        try:
+            return make_trainer().fit()
+        except ray.train.TrainingFailedError as err:
+            cause = deterministic_cause(err)
+            if cause is not None:
+                raise cause from err
+            if 0 <= max_failures <= failures:
+                raise
+            failures += 1
+            last_line = (str(err).strip().splitlines() or [type(err).__name__])[-1]
+            sys.stderr.write(f"{run_name}: worker failure {failures} of at most {max_failures} retried, "
+                             f"resuming from the latest checkpoint ({last_line})\n")
+
+
 def _fit_ray(stage: str, spec: TrainSpec, loop_config: Mapping[str, Any], opts: RayOptions,
              storage: str, callbacks: Sequence[Any], run_name: str | None) -> tuple[dict, str]:
-    """Run on Ray; returns the final rank-0 state and the run's storage path."""
+    """Run on Ray (worker crashes retried by :func:`fit_retrying`); returns the final rank-0 state
+    and the run's storage path."""
     import ray
 
     started = ensure_ray(opts.address, opts.runtime_env)
     try:
-        result = build_trainer(stage, spec, loop_config, opts, storage,
-                               callbacks=callbacks, run_name=run_name).fit()
+        def make_trainer() -> Any:
+            return build_trainer(stage, spec, loop_config, opts, storage, callbacks=callbacks,
+                                 run_name=run_name, max_failures=0)
+
+        result = fit_retrying(make_trainer, opts.max_failures, run_name or stage)
         if result.checkpoint is None:
             raise RuntimeError(f"Ray run {result.path} finished without a checkpoint")
         with result.checkpoint.as_directory() as directory:

@@ -30,15 +30,18 @@ from torch.utils.data import TensorDataset
 from pipelines.checkpoint import STATE_FILE, load_final_model, rng_file
 from pipelines.runner import (
     Components,
+    FiniteGuard,
     LoopSettings,
     Position,
     RayOptions,
     RunResult,
     StepContext,
+    TrainingError,
     TrainSpec,
     _epoch_loader,
     bucket_by_length,
     decide_use_gpu,
+    fit_retrying,
     make_run_name,
     run_training,
 )
@@ -57,7 +60,10 @@ STAGE = "toy"
 
 
 def build(cfg: dict) -> Components:
-    """Tiny MLP with dropout (uses the RNG), AdamW and an EMA."""
+    """Tiny MLP with dropout (uses the RNG), AdamW and an EMA; ``attempts_file`` gets a line per call."""
+    if cfg.get("attempts_file"):
+        with open(cfg["attempts_file"], "a") as fh:
+            fh.write("attempt\n")
     hidden = cfg.get("hidden", 32)
     net = nn.Sequential(nn.Linear(8, hidden), nn.ReLU(), nn.Dropout(0.1), nn.Linear(hidden, 1))
     return Components({"net": net}, {"net": torch.optim.AdamW(net.parameters(), lr=cfg["lr"])}, ema={"net": 0.9})
@@ -70,8 +76,11 @@ def dataset(cfg: dict) -> TensorDataset:
 
 
 def _test_hooks(ctx: StepContext) -> None:
-    """Test-only behaviour driven by config keys: fail once, record nodes, go slowly."""
+    """Test-only behaviour driven by config keys: fail once, record nodes and steps, go slowly."""
     cfg = ctx.config
+    if cfg.get("steps_file"):
+        with open(cfg["steps_file"], "a") as fh:
+            fh.write(f"{ctx.step}\n")
     marker = cfg.get("fail_marker")
     if marker and ctx.step == cfg["fail_at_step"] and not os.path.exists(marker):
         Path(marker).touch()
@@ -84,11 +93,19 @@ def _test_hooks(ctx: StepContext) -> None:
 
 
 def step(batch: Any, ctx: StepContext) -> dict[str, torch.Tensor]:
-    """MSE on noisy inputs (noise from the per-rank torch RNG)."""
+    """MSE on noisy inputs (noise from the per-rank torch RNG).
+
+    ``nan_loss_at``: the loss is NaN from that step on; ``nan_grad_at``: from that step on the
+    loss stays finite but its gradient is NaN (d sqrt(x)/dx at 0 times 0).
+    """
     _test_hooks(ctx)
     x, y = batch
     x = x + 0.01 * torch.randn_like(x)
     loss = nn.functional.mse_loss(ctx.models["net"](x), y)
+    if ctx.step >= ctx.config.get("nan_loss_at", BIG):
+        loss = loss * float("nan")
+    if ctx.step >= ctx.config.get("nan_grad_at", BIG):
+        loss = loss + torch.sqrt(0.0 * ctx.models["net"][0].weight.sum())
     ctx.update(loss)
     return {"loss": loss}
 
@@ -97,6 +114,7 @@ SPEC = TrainSpec(build=build, dataset=dataset, step=step)
 BASE = {"seed": 3, "batch_size": 16, "max_steps": 40, "lr": 1e-2, "grad_clip": 1.0,
         "warmup_steps": 5, "log_every": 10}  # 16 batches per epoch: checkpoints fall mid-epoch
 RAY1 = {"num_workers": 1, "checkpoint_every": 10, "max_failures": 2}
+BIG = 10**9  # a step never reached
 
 
 def weights(out_dir: Path) -> dict[str, torch.Tensor]:
@@ -152,6 +170,91 @@ def test_outputs(reference: RunResult) -> None:
     assert model.eval()(torch.zeros(2, 8)).shape == (2, 1)
     assert payload["step"] == BASE["max_steps"] and json.loads((out / "run.json").read_text())["attempts"] == [0]
     assert not list(out.parent.glob(".out.*")), "temporary folders left behind"
+
+
+# --------------------------------------------------------------------------- non-finite guard
+
+
+def _lines(path: Path) -> list[str]:
+    return path.read_text().split() if path.exists() else []
+
+
+@pytest.mark.parametrize(("key", "what", "name"), [("nan_loss_at", "loss", "loss"),
+                                                   ("nan_grad_at", "gradient norm", "grad_norm/net")])
+def test_non_finite_step_stops_the_run_at_once_and_writes_nothing(tmp_path: Path, key: str, what: str,
+                                                                    name: str) -> None:
+    """NaN from step 3 on: the run stops after step 3 (CPU: checked every step) naming it; no outputs."""
+    cfg = {**BASE, key: 3, "steps_file": str(tmp_path / "steps.txt")}
+    with pytest.raises(TrainingError) as info:
+        run_training(STAGE, SPEC, cfg, {"num_workers": 0, "checkpoint_every": 10}, tmp_path / "out",
+                     str(tmp_path / "storage"))
+    run_name = make_run_name(STAGE, cfg, 1)
+    assert str(info.value) == (f"{run_name}: non-finite {what} {name!r} = nan at step 3; "
+                               "training stopped, no model written")
+    assert _lines(tmp_path / "steps.txt") == ["0", "1", "2", "3"]
+    assert not (tmp_path / "out").exists()
+
+
+def test_guard_on_an_accelerator_waits_for_the_next_sync() -> None:
+    """Off the CPU the guard reads its flags only at check() (log rows): no per-step host sync."""
+    guard = FiniteGuard("toy-run", torch.device("cuda"))  # never touches CUDA: the tensors stay here
+    guard.add(0, {"loss": torch.tensor(1.0), "grad_norm/net": torch.tensor(0.5)})
+    guard.add(1, {"loss": torch.tensor(2.0), "grad_norm/net": torch.tensor(float("inf"))})
+    guard.add(2, {"loss": torch.tensor(float("nan")), "grad_norm/net": torch.tensor(0.5)})
+    with pytest.raises(TrainingError, match=r"^toy-run: non-finite gradient norm 'grad_norm/net' = inf at step 1;"):
+        guard.check()
+    guard.add(3, {"loss": torch.tensor(1.0)})
+    guard.check()  # the window was consumed: a later good step passes
+    with pytest.raises(TrainingError, match=r"non-finite loss 'acc' = nan at step 4"):
+        guard.add(4, {"acc": float("nan")})  # plain numbers cost no sync: checked at once
+
+
+class _FakeTrainer:
+    """A trainer whose fit() raises the next of ``errors`` (a Ray worker-group error) or returns "done"."""
+
+    def __init__(self, errors: list[BaseException], calls: list[int]) -> None:
+        self.errors, self.calls = errors, calls
+
+    def fit(self) -> str:
+        self.calls.append(1)
+        if self.errors:
+            raise self.errors.pop(0)
+        return "done"
+
+
+def _worker_error(exc: BaseException) -> BaseException:
+    """What Ray Train 2.x hands the driver when a worker raises ``exc``."""
+    from ray.train import WorkerGroupError
+    from ray.train.v2._internal.exceptions import UserExceptionWithTraceback
+
+    return WorkerGroupError(f"rank 0: {exc!r}", {0: UserExceptionWithTraceback(exc, f"Traceback...\n{exc!r}")})
+
+
+@pytest.mark.parametrize("error", [TrainingError("toy: non-finite loss"), ValueError("bad config key"),
+                                   TypeError("str + int"), KeyError("lr"), FileNotFoundError("no such file")])
+def test_deterministic_worker_errors_are_not_retried(error: BaseException) -> None:
+    calls: list[int] = []
+    errors = [_worker_error(error)]
+    with pytest.raises(type(error)) as info:
+        fit_retrying(lambda: _FakeTrainer(errors, calls), max_failures=2, run_name="toy-run")
+    assert str(info.value) == str(error) and len(calls) == 1
+
+
+def test_crashes_are_retried_up_to_max_failures(capsys: pytest.CaptureFixture[str]) -> None:
+    from ray.train import WorkerGroupError
+
+    calls: list[int] = []
+    errors = [_worker_error(RuntimeError("worker died")) for _ in range(2)]
+    assert fit_retrying(lambda: _FakeTrainer(errors, calls), max_failures=2, run_name="toy-run") == "done"
+    assert len(calls) == 3
+    first_note = capsys.readouterr().err.splitlines()[0]
+    assert first_note == ("toy-run: worker failure 1 of at most 2 retried, resuming from the latest checkpoint "
+                          "(rank 0: RuntimeError('worker died'))")
+    calls.clear()
+    errors = [_worker_error(RuntimeError("worker died")) for _ in range(3)]
+    with pytest.raises(WorkerGroupError):
+        fit_retrying(lambda: _FakeTrainer(errors, calls), max_failures=2, run_name="toy-run")
+    assert len(calls) == 3
 
 
 def _batch_spread(batches: np.ndarray, lengths: np.ndarray) -> float:
@@ -258,6 +361,17 @@ def test_exact_resume_after_worker_failure(ray_cluster: Any, reference: RunResul
     assert (tmp_path / "failed.marker").exists()
     assert result.attempts == [0, 20]
     assert_bit_identical(reference.out_dir, result.out_dir)
+
+
+def test_ray_nan_loss_fails_once_without_retry(ray_cluster: Any, tmp_path: Path) -> None:
+    """Through Ray Train with max_failures=2: one attempt, the worker's one-line error, no outputs."""
+    cfg = {**BASE, "nan_loss_at": 3, "attempts_file": str(tmp_path / "attempts.txt")}
+    with pytest.raises(TrainingError) as info:
+        run_training(STAGE, SPEC, cfg, RAY1, tmp_path / "out", str(tmp_path / "storage"))
+    assert str(info.value) == (f"{make_run_name(STAGE, cfg, 1)}: non-finite loss 'loss' = nan at step 3; "
+                               "training stopped, no model written")
+    assert _lines(tmp_path / "attempts.txt") == ["attempt"]
+    assert not (tmp_path / "out").exists()
 
 
 DRIVER = textwrap.dedent("""
