@@ -17,6 +17,8 @@ root and RIC groups (reference A.5).
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import torch
 
@@ -302,3 +304,45 @@ def grouped_mean_std(frames: np.ndarray, joints_num: int) -> tuple[np.ndarray, n
         group_std = std[sl].mean()
         std[sl] = group_std if group_std > 0.0 else 1.0
     return mean.astype(np.float32), std.astype(np.float32)
+
+
+def stats_problem(name: str, values: np.ndarray, feature_dim: int) -> str | None:
+    """Why ``values`` cannot be the normalisation ``name`` ("mean" or "std") of ``feature_dim``-dim features.
+
+    Both must be finite ``(feature_dim,)`` arrays, and a std must be > 0 in every dimension:
+    normalising divides by it, and a zero turns that dimension of every frame into NaN or inf
+    (a model then trains on NaN). None when ``values`` is fine.
+    """
+    if values.shape != (feature_dim,):
+        return f"{name} has shape {values.shape}, the features have {feature_dim} dims: expected ({feature_dim},)"
+    dims = np.flatnonzero(~np.isfinite(values))
+    if dims.size:
+        return f"{name} is not finite for dims {_dims_text(dims, feature_dim)}"
+    if name == "std":
+        dims = np.flatnonzero(~(values > 0))
+        if dims.size:
+            value = "0" if np.all(values[dims] == 0) else "<= 0"
+            return f"std is {value} for dims {_dims_text(dims, feature_dim)}; normalising would divide by it"
+    return None
+
+
+def check_stats(mean: np.ndarray, std: np.ndarray, directory: Path, feature_dim: int | None = None) -> None:
+    """Raise ValueError naming ``directory``'s mean.npy or std.npy if they cannot normalise the features.
+
+    ``feature_dim`` is the features' dimension; None takes the mean's, which must then be 12J - 1.
+    """
+    if feature_dim is None:
+        feature_dim = int(np.shape(mean)[0]) if np.ndim(mean) == 1 else -1
+        if feature_dim < 23 or feature_dim % 12 != 11:
+            raise ValueError(f"{directory / 'mean.npy'}: mean has shape {np.shape(mean)}, "
+                             f"not (12 J - 1,) of a J-joint skeleton's features")
+    for name, values in (("mean", mean), ("std", std)):
+        reason = stats_problem(name, np.asarray(values), feature_dim)
+        if reason:
+            raise ValueError(f"{directory / f'{name}.npy'}: {reason}")
+
+
+def _dims_text(dims: np.ndarray, total: int, shown: int = 8) -> str:
+    """``[4, 5, ...] (12 of 263)``: the first ``shown`` dimension indices and the count."""
+    head = ", ".join(str(int(d)) for d in dims[:shown])
+    return f"[{head}{', ...' if len(dims) > shown else ''}] ({len(dims)} of {total})"

@@ -58,6 +58,24 @@ SOURCES: tuple[str, ...] = ("auto", "joints", "features")
 ON_ERROR: tuple[str, ...] = ("fail", "skip")
 DEFAULT_MAX_FRAMES = 200
 
+# Problem kinds of the reader (Problem.kind), the categories of skip mode's summary.
+UNREADABLE = "unreadable file"
+MISSING = "missing file"
+BAD_MOTION = "bad motion array"
+IMPLAUSIBLE = "implausible skeleton"
+BAD_CAPTION = "bad caption"
+BAD_SPLIT_LINE = "bad split-file line"
+SHARED_ID = "id in several splits"
+EMPTY_SPLIT = "empty split"
+PROBLEM_KINDS = (UNREADABLE, MISSING, BAD_MOTION, IMPLAUSIBLE, BAD_CAPTION, BAD_SPLIT_LINE, SHARED_ID, EMPTY_SPLIT)
+
+# A clip's bones must be within these factors of the skeleton's reference lengths (median over
+# frames, per bone). Retargeted data (HumanML3D's new_joints, new_joint_vecs) matches the
+# reference to float precision and raw captures of adults stay well within 0.5-2x; the bounds
+# are generous so that only a wrong unit or scale (mm read as m is 1000x, a 1e6 scale) or a
+# broken skeleton is caught.
+BONE_RATIO_RANGE = (0.2, 5.0)
+
 # Clip ids become file names and split-file lines: letters, digits, '_', '-', '.', not starting
 # with '.'. '@' and '~' are reserved for span item ids, ',' for actions.txt.
 _CLIP_ID_RE = re.compile(r"[A-Za-z0-9_\-][A-Za-z0-9_\-.]*")
@@ -184,10 +202,15 @@ def _check_time(value: float, name: str) -> float:
 
 @dataclass(frozen=True)
 class Problem:
-    """A defect in the input: ``path`` is the file at fault (``file:line`` for a line)."""
+    """A defect in the input: ``path`` is the file at fault (``file:line`` for a line).
+
+    ``kind`` is a short category (one of :data:`PROBLEM_KINDS` for the reader's problems), under
+    which skip mode summarises what it dropped; it is not part of equality.
+    """
 
     path: str
     reason: str
+    kind: str = field(default="bad input", compare=False)
 
     def __str__(self) -> str:
         return f"{self.path}: {self.reason}"
@@ -362,14 +385,51 @@ def _read_motion(path: Path, skeleton: Skeleton, kind: str) -> tuple[np.ndarray 
     try:
         arr = load_npy(path)
     except (OSError, ValueError) as exc:
-        return None, Problem(str(path), f"unreadable or corrupt .npy: {exc}")
+        return None, Problem(str(path), f"unreadable or corrupt .npy: {exc}", UNREADABLE)
     reason = array_problem(arr, skeleton, kind)
     if reason is None and arr.dtype != np.float32:
         arr = to_float32(arr)
         reason = array_problem(arr, skeleton, kind)  # float64 -> float32 may overflow to inf
     if reason is not None:
-        return None, Problem(str(path), reason)
+        return None, Problem(str(path), reason, BAD_MOTION)
+    reason = bone_length_problem(arr, skeleton, kind)
+    if reason is not None:
+        return None, Problem(str(path), reason, IMPLAUSIBLE)
     return arr, None
+
+
+def bone_lengths(arr: np.ndarray, skeleton: Skeleton, kind: str) -> np.ndarray:
+    """(T, J) bone lengths of a joints array, or of the joints a features array encodes (root 0).
+
+    Features hold joints 1..J-1 relative to the root's ground position (``ric``, dims
+    ``4 : 3J + 1``) and the root height (dim 3): the root sits at ``(0, height, 0)`` in that frame,
+    and bone lengths do not depend on the frame.
+    """
+    if kind == "joints":
+        return skeleton.bone_lengths_of(arr)
+    j = skeleton.joints_num
+    ric = arr[:, 4 : 3 * j + 1].reshape(len(arr), j - 1, 3).astype(np.float64)
+    root = np.zeros((len(arr), 1, 3))
+    root[:, 0, 1] = arr[:, 3]
+    return skeleton.bone_lengths_of(np.concatenate([root, ric], axis=1))
+
+
+def bone_length_problem(arr: np.ndarray, skeleton: Skeleton, kind: str) -> str | None:
+    """Why a valid joints/features array's skeleton is implausible (:data:`BONE_RATIO_RANGE`), or None.
+
+    Each bone's median length over the frames is compared with the skeleton's reference length.
+    """
+    low, high = BONE_RATIO_RANGE
+    median = np.median(bone_lengths(arr, skeleton, kind)[:, 1:], axis=0)
+    ratio = median / skeleton.bone_lengths[1:]
+    bad = np.flatnonzero((ratio < low) | (ratio > high))
+    if bad.size == 0:
+        return None
+    first, unit = bad[0], skeleton.unit
+    return (f"implausible bone lengths: {bad.size} of {len(ratio)} bones are outside {low:g}-{high:g}x the "
+            f"{skeleton.name} reference (median ratio {np.median(ratio[bad]):.3g}x), e.g. the bone to "
+            f"{skeleton.joint_names[first + 1]!r} is {median[first] * unit:.4g} m (median over frames) against "
+            f"{skeleton.bone_lengths[first + 1] * unit:.4g} m: wrong unit or scale?")
 
 
 def _decode_text(path: Path, missing: str) -> tuple[str | None, Problem | None]:
@@ -380,13 +440,13 @@ def _decode_text(path: Path, missing: str) -> tuple[str | None, Problem | None]:
     try:
         raw = path.read_bytes()
     except FileNotFoundError:
-        return None, Problem(str(path), missing)
+        return None, Problem(str(path), missing, MISSING)
     except OSError as exc:
-        return None, Problem(str(path), f"unreadable: {exc}")
+        return None, Problem(str(path), f"unreadable: {exc}", UNREADABLE)
     try:
         return raw.decode("utf-8-sig"), None
     except UnicodeDecodeError as exc:
-        return None, Problem(str(path), f"not UTF-8 text (byte {exc.start}: {exc.reason})")
+        return None, Problem(str(path), f"not UTF-8 text (byte {exc.start}: {exc.reason})", UNREADABLE)
 
 
 def _content_lines(text: str) -> list[tuple[int, str]]:
@@ -407,9 +467,9 @@ def parse_captions(path: Path) -> tuple[list[Caption], list[Problem]]:
         try:
             captions.append(Caption.from_line(line))
         except ValueError as exc:
-            problems.append(Problem(f"{path}:{lineno}", f"bad caption line: {exc}"))
+            problems.append(Problem(f"{path}:{lineno}", f"bad caption line: {exc}", BAD_CAPTION))
     if not captions and not problems:
-        problems.append(Problem(str(path), "no caption lines"))
+        problems.append(Problem(str(path), "no caption lines", BAD_CAPTION))
     return captions, problems
 
 
@@ -427,12 +487,17 @@ def parse_split_ids(root: Path, split: str) -> tuple[list[str], list[Problem]]:
     Raises:
         DatasetError: the split file is missing, unreadable or not UTF-8.
     """
+    lines, problems = _split_id_lines(root, split)
+    return list(lines), problems
+
+
+def _split_id_lines(root: Path, split: str) -> tuple[dict[str, int], list[Problem]]:
+    """{clip id: line number} of ``<root>/<split>.txt`` in file order, plus bad-line problems."""
     check_split_name(split)
     path = Path(root) / f"{split}.txt"
     text, problem = _decode_text(path, "split file not found")
     if problem:
         raise DatasetError([problem], f"split {split!r}")
-    ids: list[str] = []
     problems: list[Problem] = []
     first_line: dict[str, int] = {}
     for lineno, clip_id in _content_lines(text):
@@ -440,11 +505,10 @@ def parse_split_ids(root: Path, split: str) -> tuple[list[str], list[Problem]]:
         if reason is None and clip_id in first_line:
             reason = f"duplicate id {clip_id!r} (first on line {first_line[clip_id]})"
         if reason:
-            problems.append(Problem(f"{path}:{lineno}", reason))
+            problems.append(Problem(f"{path}:{lineno}", reason, BAD_SPLIT_LINE))
             continue
         first_line[clip_id] = lineno
-        ids.append(clip_id)
-    return ids, problems
+    return first_line, problems
 
 
 def read_split_ids(root: Path, split: str) -> list[str]:
@@ -527,8 +591,8 @@ def _motion_path(root: Path, clip_id: str, source: str) -> tuple[str, Path] | Pr
     if source in ("auto", "features") and features.is_file():
         return "features", features
     if source == "auto":
-        return Problem(str(joints), f"no motion file for split id (neither {joints} nor {features})")
-    return Problem(str(joints if source == "joints" else features), "no motion file for split id")
+        return Problem(str(joints), f"no motion file for split id (neither {joints} nor {features})", MISSING)
+    return Problem(str(joints if source == "joints" else features), "no motion file for split id", MISSING)
 
 
 def _load_clip(
@@ -606,6 +670,7 @@ def read_split(
     on_error: str = "fail",
     min_frames: int | None = None,
     max_frames: int = DEFAULT_MAX_FRAMES,
+    exclude: Mapping[str, Problem] | None = None,
 ) -> SplitData:
     """Read one split of a HumanML3D-layout dataset into clips and items.
 
@@ -620,6 +685,8 @@ def read_split(
             ``"skip"`` drops bad clips and lists their problems in ``SplitData.skipped``.
         min_frames: minimum feature length (default ``skeleton.min_frames``).
         max_frames: exclusive maximum feature length.
+        exclude: ids not to read, each with the problem to report instead (:func:`read_splits`
+            passes the ids already in an earlier split).
 
     Raises:
         ValueError: unknown ``source``/``on_error``, invalid split name or bounds.
@@ -634,6 +701,9 @@ def read_split(
     actions, action_problems = parse_actions(root)
     data = SplitData(split=split)
     for clip_id in ids:
+        if exclude and clip_id in exclude:
+            problems.append(exclude[clip_id])
+            continue
         loaded, captions, clip_problems = _load_clip(root, clip_id, skeleton, source)
         if clip_problems:
             problems += clip_problems
@@ -676,14 +746,62 @@ def _add_clip(
 def read_splits(
     root: Path, skeleton: Skeleton, splits: Sequence[str] = SPLITS, **options: object
 ) -> dict[str, SplitData]:
-    """:func:`read_split` for several splits; in fail mode one DatasetError lists all problems."""
+    """:func:`read_split` for several splits, checked as a set of splits.
+
+    Beyond each split's own problems: a clip id listed in more than one split (it would leak
+    from training into evaluation) is a problem of every split after the first that lists it,
+    and a split without any item is a problem of its split file. In fail mode one DatasetError
+    lists every problem of every split; in skip mode a shared id is read only in its first split
+    and both kinds of problem are listed in the split's ``skipped``.
+    """
+    root = Path(root)
+    shared = shared_ids(root, splits)
     result: dict[str, SplitData] = {}
     problems: list[Problem] = []
     for split in splits:
         try:
-            result[split] = read_split(root, split, skeleton, **options)  # type: ignore[arg-type]
+            data = read_split(root, split, skeleton, exclude=shared.get(split), **options)  # type: ignore[arg-type]
         except DatasetError as exc:
             problems += exc.problems
+            continue
+        if not data.items:
+            empty = _empty_split_problem(root, data)
+            (problems if options.get("on_error", "fail") == "fail" else data.skipped).append(empty)
+        result[split] = data
     if problems:
         raise DatasetError(list(dict.fromkeys(problems)), f"splits {list(splits)} of {root}")
     return result
+
+
+def shared_ids(root: Path, splits: Sequence[str]) -> dict[str, dict[str, Problem]]:
+    """Per split, the ids an earlier split already lists, each with its problem (``file:line``).
+
+    Split files that cannot be read are left out (:func:`read_split` reports them).
+    """
+    first: dict[str, tuple[str, int]] = {}
+    shared: dict[str, dict[str, Problem]] = {}
+    for split in splits:
+        try:
+            lines, _ = _split_id_lines(root, split)
+        except DatasetError:
+            continue
+        for clip_id, lineno in lines.items():
+            if clip_id not in first:
+                first[clip_id] = (split, lineno)
+                continue
+            other, other_line = first[clip_id]
+            shared.setdefault(split, {})[clip_id] = Problem(
+                f"{root / f'{split}.txt'}:{lineno}",
+                f"clip id {clip_id!r} is also in {root / f'{other}.txt'}:{other_line}: "
+                f"a clip in two splits leaks between them", SHARED_ID)
+    return shared
+
+
+def _empty_split_problem(root: Path, data: SplitData) -> Problem:
+    """The problem of a split that has no item, with what became of its ids."""
+    if not data.skipped and not data.filtered:
+        reason = f"split {data.split!r} is empty: the file lists no clip id"
+    else:
+        reason = (f"split {data.split!r} has no item left: {len(data.skipped)} problem(s) skipped, "
+                  f"{len(data.filtered)} clip(s) or span(s) filtered by length")
+    return Problem(str(root / f"{data.split}.txt"), reason, EMPTY_SPLIT)

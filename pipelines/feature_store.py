@@ -18,24 +18,28 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import pyarrow as pa
+import pyarrow.parquet as pq
 
-from data.features import recover_from_ric
+from data.features import check_stats, recover_from_ric
 from data.store import StoredItem, read_split
 from data.text_encoders import TextEncoder, build_text_encoder
 from models.generator import TextBatch
 
 
 class FeatureStore:
-    """A feature-store folder: statistics, metadata, splits and its text encoder."""
+    """A feature-store folder: statistics, metadata, splits and its text encoder.
+
+    The statistics are checked once, on opening: ``mean.npy`` and ``std.npy`` must be finite
+    ``(D,)`` arrays with ``std > 0``, where D is the features' dimension (``meta.json``'s
+    ``feature_dim`` and every split's Parquet width, which must agree). Any other store would
+    fail far downstream (a broadcast error, or a model training on NaN); this names the file.
+    """
 
     def __init__(self, path: str | Path) -> None:
         self.path = Path(path).resolve()
         if not self.path.is_dir():
             raise FileNotFoundError(f"{self.path}: no feature store (run `dvc repro extract_features`)")
-        self.mean = self._load_stat("mean.npy")
-        self.std = self._load_stat("std.npy")
-        if self.mean.shape != self.std.shape:
-            raise ValueError(f"{self.path}: mean.npy {self.mean.shape} and std.npy {self.std.shape} differ in shape")
         meta_path = self.path / "meta.json"
         try:
             self.meta: dict[str, Any] = json.loads(meta_path.read_text(encoding="utf-8"))
@@ -43,6 +47,10 @@ class FeatureStore:
             raise ValueError(f"{meta_path}: cannot read the store's metadata ({err})") from err
         if "text_encoder" not in self.meta:
             raise ValueError(f"{meta_path}: no 'text_encoder' entry")
+        self.mean = self._load_stat("mean.npy")
+        self.std = self._load_stat("std.npy")
+        check_stats(self.mean, self.std, self.path, self._declared_feature_dim())
+        self._check_split_widths()
 
     def _load_stat(self, name: str) -> np.ndarray:
         path = self.path / name
@@ -50,9 +58,27 @@ class FeatureStore:
             values = np.load(path, allow_pickle=False)
         except (OSError, ValueError) as err:
             raise ValueError(f"{path}: cannot read ({err})") from err
-        if values.ndim != 1 or not np.all(np.isfinite(values)):
-            raise ValueError(f"{path}: expected a finite 1-D array, got shape {values.shape}")
+        if not (np.issubdtype(values.dtype, np.floating) or np.issubdtype(values.dtype, np.integer)):
+            raise ValueError(f"{path}: dtype {values.dtype} is not a real number type")
         return values.astype(np.float32)
+
+    def _declared_feature_dim(self) -> int | None:
+        """``meta.json``'s feature_dim (stores written by hand may leave it out)."""
+        dim = self.meta.get("feature_dim")
+        if dim is not None and (isinstance(dim, bool) or not isinstance(dim, int)):
+            raise ValueError(f"{self.path / 'meta.json'}: feature_dim {dim!r} is not an integer")
+        return dim
+
+    def _check_split_widths(self) -> None:
+        """Every split's Parquet features have the statistics' dimension (read from the footer)."""
+        for path in sorted(self.path.glob("*.parquet")):
+            try:
+                width = pq.read_schema(path).field("features").type.value_type.list_size
+            except (OSError, KeyError, AttributeError, pa.ArrowException) as err:
+                raise ValueError(f"{path}: not a feature-store split ({err})") from err
+            if width != self.feature_dim:
+                raise ValueError(f"{path}: features are ({width},) per frame but {self.path / 'mean.npy'} "
+                                 f"and std.npy are {self.mean.shape}")
 
     @property
     def feature_dim(self) -> int:

@@ -11,7 +11,10 @@ embeddings of every caption; then writes atomically to ``features.out``::
     skipped.json                               only with data.on_error=skip: what and why
 
 With ``data.on_error=fail`` (default) any bad input makes the stage list every problem and exit
-non-zero, writing nothing.
+non-zero, writing nothing. Bad input includes the dataset as a whole: a clip id in two splits, an
+empty split (:func:`data.humanml3d.read_splits`), and statistics that cannot normalise (a zero
+std). With ``data.on_error=skip`` the bad clips are left out, listed in ``skipped.json`` and
+summarised on the console, one line per kind of problem.
 """
 
 from __future__ import annotations
@@ -21,6 +24,7 @@ import json
 import os
 import sys
 import time
+from collections import defaultdict
 from collections.abc import Sequence
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import asdict
@@ -32,15 +36,14 @@ import numpy as np
 from tqdm import tqdm
 
 from data.atomic import atomic_directory, check_output
-from data.features import features_from_joints, grouped_mean_std
-from data.humanml3d import DatasetError, Problem, SplitData, read_split
+from data.features import check_stats, features_from_joints, grouped_mean_std
+from data.humanml3d import SPLITS, DatasetError, Problem, SplitData, read_splits
 from data.skeleton import Skeleton, get_skeleton
 from data.store import StoredItem, write_split
 from data.text_encoders import TextEncoder, build_text_encoder
 from pipelines.cli import run_main
 from pipelines.config import REPO_ROOT
 
-SPLITS = ("train", "val", "test")
 FEATURE_VERSION = 1  # bump when the feature computation changes
 ENCODE_CHUNK = 1024  # captions per encoder call: bounds the (N, L, H) token array in memory
 
@@ -48,19 +51,9 @@ PARAMS = ("data", "features")
 
 
 def read_dataset(root: Path, skeleton: Skeleton, data_cfg: dict[str, Any]) -> dict[str, SplitData]:
-    """Read every split; in ``fail`` mode collect the problems of all splits before raising."""
-    splits, problems = {}, []
-    for split in SPLITS:
-        try:
-            splits[split] = read_split(
-                root, split, skeleton, source=data_cfg["source"], on_error=data_cfg["on_error"],
-                max_frames=data_cfg["feature_frames_below"],
-            )
-        except DatasetError as err:
-            problems.extend(err.problems)
-    if problems:
-        raise DatasetError(problems)
-    return splits
+    """Read every split, checked as a set (:func:`read_splits`); in ``fail`` mode one error lists all problems."""
+    return read_splits(root, skeleton, SPLITS, source=data_cfg["source"], on_error=data_cfg["on_error"],
+                       max_frames=data_cfg["feature_frames_below"])
 
 
 def _features_job(job: tuple[str, np.ndarray, Skeleton]) -> tuple[str, np.ndarray | None, str | None]:
@@ -111,7 +104,8 @@ def clip_features(
         if error is None:
             feats[clip_id] = features
         else:
-            problems.append(Problem(str(root / "new_joints" / f"{clip_id}.npy"), f"feature extraction failed: {error}"))
+            problems.append(Problem(str(root / "new_joints" / f"{clip_id}.npy"), f"feature extraction failed: {error}",
+                                    "feature extraction failed"))
     if problems and on_error == "fail":
         raise DatasetError(problems)
     return feats, problems
@@ -160,6 +154,20 @@ def _problem_dicts(problems: Sequence[Problem]) -> list[dict[str, str]]:
     return [asdict(p) for p in problems]
 
 
+def skip_summary(problems: Sequence[Problem], skipped_json: Path, shown: int = 3) -> str:
+    """Console lines of skip mode: a header naming ``skipped_json``, then per kind of problem its
+    count and first few files (``file`` or ``file:line``)."""
+    by_kind: dict[str, list[str]] = defaultdict(list)
+    for problem in problems:
+        by_kind[problem.kind].append(Path(problem.path).name)
+    lines = [f"extract_features: data.on_error=skip left out {len(problems)} problem(s); "
+             f"all of them in {skipped_json}"]
+    for kind, names in by_kind.items():
+        more = f", ... ({len(names) - shown} more)" if len(names) > shown else ""
+        lines.append(f"  {kind}: {len(names)} ({', '.join(names[:shown])}{more})")
+    return "\n".join(lines)
+
+
 def run(params: dict[str, Any]) -> Path:
     """Extract features as configured; returns the output directory."""
     data_cfg, feat_cfg = params["data"], params["features"]
@@ -175,6 +183,7 @@ def run(params: dict[str, Any]) -> Path:
     if not train_clips:
         raise DatasetError([Problem(str(root / "train.txt"), "no usable training motion")])
     mean, std = grouped_mean_std(np.concatenate([feats[c] for c in sorted(train_clips)]), skeleton.joints_num)
+    check_stats(mean, std, out, skeleton.feature_dim)  # before anything is written
 
     encoder = build_text_encoder(
         feat_cfg["text_encoder"], path=feat_cfg["text_encoder_path"], max_length=feat_cfg["max_text_tokens"]
@@ -213,6 +222,8 @@ def run(params: dict[str, Any]) -> Path:
             "feature_version": FEATURE_VERSION,
         }
         (tmp / "meta.json").write_text(json.dumps(meta, indent=2))
+    if skipped:
+        sys.stderr.write(skip_summary(skipped, out / "skipped.json") + "\n")
     print(f"extract_features: {sum(c['items'] for c in counts.values())} items, "
           f"{len(text)} distinct captions in {time.perf_counter() - start:.1f} s -> {out}")
     return out
@@ -223,6 +234,8 @@ def main(argv: Sequence[str] | None = None) -> None:
     try:
         run_main("extract_features", run, PARAMS, argv)
     except DatasetError as err:
+        if len(err.problems) == 1:
+            sys.exit(f"extract_features: bad input, nothing written: {err.problems[0]}")
         sys.exit(f"extract_features: bad input, nothing written.\n{err}")
 
 

@@ -13,6 +13,7 @@ import torch
 
 from data import rotations as R
 from data.features import (
+    check_stats,
     feature_groups,
     features_from_joints,
     grouped_mean_std,
@@ -226,6 +227,36 @@ def test_grouped_mean_std_rejects_bad_input() -> None:
         grouped_mean_std(np.zeros((1, 263)), 22)
     with pytest.raises(ValueError, match="shape"):
         grouped_mean_std(np.zeros((5, 251)), 22)
+
+
+def test_statistics_that_cannot_normalise_are_refused_naming_file_and_dims(tmp_path) -> None:
+    mean, std = np.zeros(263, np.float32), np.ones(263, np.float32)
+    check_stats(mean, std, tmp_path)  # a fine pair
+    check_stats(*grouped_mean_std(np.random.default_rng(0).normal(size=(9, 263)), 22), tmp_path, 263)
+    zero = std.copy()
+    zero[[4, 5, 6, 7, 8, 9, 10, 11, 200]] = 0.0
+    with pytest.raises(ValueError) as info:
+        check_stats(mean, zero, tmp_path)
+    assert str(info.value) == (f"{tmp_path}/std.npy: std is 0 for dims [4, 5, 6, 7, 8, 9, 10, 11, ...] (9 of 263); "
+                               "normalising would divide by it")
+    with pytest.raises(ValueError, match=r"std.npy: std is <= 0 for dims \[3\] \(1 of 263\)"):
+        check_stats(mean, np.where(np.arange(263) == 3, -1.0, 1.0), tmp_path)
+    with pytest.raises(ValueError, match=r"mean.npy: mean is not finite for dims \[0, 262\] \(2 of 263\)"):
+        check_stats(np.where(np.isin(np.arange(263), [0, 262]), np.nan, 0.0), std, tmp_path)
+    with pytest.raises(ValueError, match=r"std.npy: std is not finite for dims \[1\]"):
+        check_stats(mean, np.where(np.arange(263) == 1, np.inf, 1.0), tmp_path)
+
+
+def test_statistics_must_match_the_feature_dim(tmp_path) -> None:
+    with pytest.raises(ValueError) as info:
+        check_stats(np.zeros(7), np.ones(7), tmp_path, feature_dim=263)
+    assert str(info.value) == f"{tmp_path}/mean.npy: mean has shape (7,), the features have 263 dims: expected (263,)"
+    with pytest.raises(ValueError, match=r"std.npy: std has shape \(262,\), the features have 263 dims"):
+        check_stats(np.zeros(263), np.ones(262), tmp_path)
+    with pytest.raises(ValueError, match=r"mean.npy: mean has shape \(7,\), not \(12 J - 1,\)"):
+        check_stats(np.zeros(7), np.ones(7), tmp_path)  # no declared dim: the layout decides
+    with pytest.raises(ValueError, match=r"mean.npy: mean has shape \(2, 263\)"):
+        check_stats(np.zeros((2, 263)), np.ones(263), tmp_path)
 
 
 # --------------------------------------------------------------------------- bad input

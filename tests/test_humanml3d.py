@@ -13,6 +13,10 @@ import pytest
 
 from data.atomic import MANIFEST
 from data.humanml3d import (
+    EMPTY_SPLIT,
+    IMPLAUSIBLE,
+    SHARED_ID,
+    UNREADABLE,
     Caption,
     DatasetError,
     MotionItem,
@@ -30,14 +34,31 @@ from data.skeleton import HUMANML3D, KIT, Skeleton
 # --------------------------------------------------------------------------------------------
 
 
+def rest_pose(skeleton: Skeleton, scale: float = 1.0) -> np.ndarray:
+    """(J, 3) rest pose of ``skeleton`` with every bone ``scale`` times its reference length."""
+    offsets, rest = skeleton.offsets(), np.zeros((skeleton.joints_num, 3))
+    for chain in skeleton.kinematic_chain:
+        for parent, child in zip(chain[:-1], chain[1:], strict=True):
+            rest[child] = rest[parent] + scale * offsets[child]
+    return rest
+
+
 def joints(n_frames: int, n_joints: int = 22, seed: int = 0) -> np.ndarray:
-    """Random (T, J, 3) float32 joint positions."""
-    return np.random.default_rng(seed).normal(size=(n_frames, n_joints, 3)).astype(np.float32)
+    """Random (T, J, 3) float32 joint positions with plausible bones: the rest pose of HumanML3D's
+    (22 joints) or KIT's (21) skeleton, every joint jittered by 5 % of the longest bone."""
+    skeleton = HUMANML3D if n_joints == 22 else KIT
+    jitter = np.random.default_rng(seed).normal(scale=0.05 * skeleton.bone_lengths.max(), size=(n_frames, n_joints, 3))
+    return (rest_pose(skeleton) + jitter).astype(np.float32)
 
 
 def features(n_frames: int, n_joints: int = 22, seed: int = 0) -> np.ndarray:
-    """Random (T, 12J-1) float32 features."""
-    return np.random.default_rng(seed).normal(size=(n_frames, 12 * n_joints - 1)).astype(np.float32)
+    """Random (T, 12J-1) float32 features whose root height and root-relative joints (``ric``)
+    are those of :func:`joints`, so that the bones they encode are plausible."""
+    out = np.random.default_rng(seed).normal(size=(n_frames, 12 * n_joints - 1))
+    pose = joints(n_frames, n_joints, seed).astype(np.float64)
+    out[:, 3] = pose[:, 0, 1]
+    out[:, 4 : 3 * n_joints + 1] = (pose[:, 1:] - pose[:, :1] * [1.0, 0.0, 1.0]).reshape(n_frames, -1)
+    return out.astype(np.float32)
 
 
 def cap(text: str = "a person walks forward", start: float = 0.0, end: float = 0.0) -> Caption:
@@ -63,10 +84,11 @@ def standard_clips() -> list[Clip]:
         Clip("000002", [cap("a person jumps up")], joints=joints(81, seed=2), action="jump"),
         Clip("M000003", [cap("a person sits down")], features=features(50, seed=3)),
         Clip("000004", [cap("a person bows")], joints=joints(41, seed=4), features=features(45, seed=4)),
+        Clip("000005", [cap("a person turns around")], joints=joints(51, seed=5)),
     ]
 
 
-STANDARD_SPLITS = {"train": ["000001", "000002", "M000003"], "val": ["000004"], "test": ["000002"]}
+STANDARD_SPLITS = {"train": ["000001", "000002", "M000003"], "val": ["000004"], "test": ["000005"]}
 
 
 @pytest.fixture
@@ -197,7 +219,8 @@ def test_written_files_follow_humanml3d_layout(dataset: Path) -> None:
         "a person jumps up#a/OTHER person/OTHER jumps/OTHER up/OTHER#0.0#0.0\n"
     )
     assert (dataset / "actions.txt").read_text() == "000001,walk\n000002,jump\n"
-    assert sorted(p.name for p in (dataset / "new_joints").iterdir()) == ["000001.npy", "000002.npy", "000004.npy"]
+    assert sorted(p.name for p in (dataset / "new_joints").iterdir()) == ["000001.npy", "000002.npy", "000004.npy",
+                                                                         "000005.npy"]
     assert sorted(p.name for p in (dataset / "new_joint_vecs").iterdir()) == ["000004.npy", "M000003.npy"]
     assert np.load(dataset / "new_joints" / "000002.npy").dtype == np.float32
 
@@ -227,11 +250,11 @@ def test_source_selection(dataset: Path) -> None:
 def test_read_splits(dataset: Path) -> None:
     data = read_splits(dataset, HUMANML3D)
     assert sorted(data) == ["test", "train", "val"]
-    assert [i.item_id for i in data["test"].items] == ["000002"]
+    assert [i.item_id for i in data["test"].items] == ["000005"]
     (dataset / "val.txt").unlink()
     save_npy(dataset / "new_joints" / "000002.npy", joints(1))
     err = pytest.raises(DatasetError, read_splits, dataset, HUMANML3D).value
-    paths = [p.path for p in err.problems]  # 000002 is in train and test: reported once
+    paths = [p.path for p in err.problems]
     assert paths == [str(dataset / "new_joints" / "000002.npy"), str(dataset / "val.txt")]
 
 
@@ -584,3 +607,85 @@ def test_kit_span_uses_kit_fps(tmp_path: Path) -> None:
     root = _single(tmp_path, Clip("k", [cap("span", 1.0, 3.0)], features=features(60, 21)))
     [item] = read_split(root, "train", KIT).items
     assert (item.item_id, item.start, item.end) == ("k@12-37", 12, 37)
+
+
+# --------------------------------------------------------------------------------------------
+# Dataset integrity: shared ids, empty splits, implausible skeletons
+# --------------------------------------------------------------------------------------------
+
+
+def test_id_in_two_splits_fails_naming_both_lines(dataset: Path) -> None:
+    _append_text(dataset / "test.txt", "000002\n")  # train.txt line 2
+    err = pytest.raises(DatasetError, read_splits, dataset, HUMANML3D).value
+    assert [str(p) for p in err.problems] == [
+        f"{dataset}/test.txt:2: clip id '000002' is also in {dataset}/train.txt:2: a clip in two splits leaks "
+        "between them"]
+    assert err.problems[0].kind == SHARED_ID
+    # each split read alone knows nothing of the others
+    assert [i.clip_id for i in read_split(dataset, "test", HUMANML3D).items] == ["000005", "000002"]
+
+
+def test_id_in_two_splits_is_kept_in_its_first_split_and_reported_in_skip_mode(dataset: Path) -> None:
+    _append_text(dataset / "val.txt", "000001\n")
+    _append_text(dataset / "test.txt", "000001\n")
+    data = read_splits(dataset, HUMANML3D, on_error="skip")
+    assert "000001" in data["train"].clips and data["train"].skipped == []
+    for split, line in (("val", 2), ("test", 2)):
+        assert "000001" not in data[split].clips
+        [problem] = data[split].skipped
+        assert (problem.path, problem.kind) == (f"{dataset}/{split}.txt:{line}", SHARED_ID)
+        assert f"{dataset}/train.txt:1" in problem.reason
+
+
+def test_empty_split_fails_and_is_reported_in_skip_mode(dataset: Path) -> None:
+    (dataset / "val.txt").write_text("\n")
+    err = pytest.raises(DatasetError, read_splits, dataset, HUMANML3D).value
+    assert [str(p) for p in err.problems] == [f"{dataset}/val.txt: split 'val' is empty: the file lists no clip id"]
+    data = read_splits(dataset, HUMANML3D, on_error="skip")
+    assert data["val"].items == [] and [p.kind for p in data["val"].skipped] == [EMPTY_SPLIT]
+
+
+def test_split_emptied_by_skipping_is_reported(dataset: Path) -> None:
+    _truncate(dataset / "new_joints" / "000004.npy")  # val's only clip
+    data = read_splits(dataset, HUMANML3D, on_error="skip")
+    assert [(p.kind, p.path) for p in data["val"].skipped] == [
+        (UNREADABLE, f"{dataset}/new_joints/000004.npy"), (EMPTY_SPLIT, f"{dataset}/val.txt")]
+    assert data["val"].skipped[1].reason == "split 'val' has no item left: 1 problem(s) skipped, 0 clip(s) or " \
+                                            "span(s) filtered by length"
+
+
+def _standing(skeleton: Skeleton, scale: float, n_frames: int = 50) -> np.ndarray:
+    """``n_frames`` of :func:`rest_pose` with bones ``scale`` times the reference."""
+    return np.repeat(rest_pose(skeleton, scale)[None], n_frames, axis=0).astype(np.float32)
+
+
+@pytest.mark.parametrize(("scale", "plausible"), [(1.0, True), (0.21, True), (4.9, True), (0.19, False),
+                                                  (5.1, False), (1000.0, False), (1e6, False)])
+def test_bone_lengths_must_be_plausible(tmp_path: Path, scale: float, plausible: bool) -> None:
+    root = _single(tmp_path, Clip("c", [cap()], joints=_standing(HUMANML3D, scale)))
+    if plausible:
+        assert list(read_split(root, "train", HUMANML3D).clips) == ["c"]
+        return
+    [problem] = read_fails(root).problems
+    assert (problem.path, problem.kind) == (str(root / "new_joints" / "c.npy"), IMPLAUSIBLE)
+    assert problem.reason == (f"implausible bone lengths: 21 of 21 bones are outside 0.2-5x the humanml3d reference "
+                              f"(median ratio {scale:.3g}x), e.g. the bone to 'left_hip' is {0.103074 * scale:.4g} m "
+                              f"(median over frames) against 0.1031 m: wrong unit or scale?")
+
+
+def test_implausible_features_and_skip_mode(dataset: Path) -> None:
+    vecs = dataset / "new_joint_vecs" / "M000003.npy"
+    save_npy(vecs, np.load(vecs) * 1e6)
+    err = read_fails(dataset)
+    assert [(p.path, p.kind) for p in err.problems] == [(str(vecs), IMPLAUSIBLE)]
+    data = read_split(dataset, "train", HUMANML3D, on_error="skip")
+    assert list(data.clips) == ["000001", "000002"] and [p.path for p in data.skipped] == [str(vecs)]
+
+
+def test_kit_bones_are_checked_in_millimetres(tmp_path: Path) -> None:
+    root = tmp_path / "kit"
+    write_dataset(root, [Clip("mm", [cap()], joints=_standing(KIT, 1.0)),
+                         Clip("m", [cap()], joints=_standing(KIT, 0.001))], {"train": ["mm", "m"]}, skeleton=KIT)
+    data = read_split(root, "train", KIT, on_error="skip")
+    assert list(data.clips) == ["mm"]
+    assert "the bone to 'bp' is 0.00011 m (median over frames) against 0.11 m" in data.skipped[0].reason
