@@ -535,9 +535,8 @@ class _Window:
         self.counts: dict[str, int] = {}
 
     def add(self, metrics: Mapping[str, Any]) -> None:
-        """Accumulate one step's metrics (a key may be missing on some steps)."""
+        """Accumulate one step's detached metrics (a key may be missing on some steps)."""
         for k, v in metrics.items():
-            v = v.detach() if isinstance(v, torch.Tensor) else float(v)
             self.sums[k] = self.sums[k] + v if k in self.sums else v
             self.counts[k] = self.counts.get(k, 0) + 1
 
@@ -548,12 +547,12 @@ class _Window:
         return means
 
 
-def _log_row(run: _Run, window: _Window, progress: tracking.Progress, s: LoopSettings,
+def _log_row(run: _Run, means: Mapping[str, float], progress: tracking.Progress, s: LoopSettings,
              session: Session, wandb_run: Any) -> dict[str, Any]:
-    """Close the logging window: history row, progress line and W&B on rank 0."""
+    """Log the closed window's ``means``: history row, progress line and W&B on rank 0."""
     rate = progress.rate(run.pos.step)
     lr = next(iter(run.optimizers.values())).param_groups[0]["lr"] if run.optimizers else 0.0
-    row = {"step": run.pos.step, "epoch": run.pos.epoch, **window.pop(), "lr": lr,
+    row = {"step": run.pos.step, "epoch": run.pos.epoch, **means, "lr": lr,
            "steps_per_s": rate, "samples_per_s": rate * s.batch_size * session.world_size}
     if session.rank == 0:
         run.history.append(row)
@@ -578,56 +577,51 @@ def _checkpoint(run: _Run, session: Session, metrics: dict[str, Any]) -> None:
 class FiniteGuard:
     """Stops the run at the first non-finite loss or gradient norm of any step.
 
-    Each step's metrics (the stage's losses and, where clipping computes it, ``grad_norm/<opt>``)
-    are stacked into one small tensor on their device; one ``torch.isfinite`` tests them.
-    Reading the answer back is a host sync, so on a CPU device (where it costs nothing) it is read
-    after every step, and on an accelerator only when the loop syncs anyway: when it writes a log
-    row (every ``log_every`` steps and before every checkpoint or report). The run then stops within
-    one logging window of the bad step, names that step, and never checkpoints or writes a model
-    after it.
+    It watches each step's metrics (the stage's losses and, where clipping computes it,
+    ``grad_norm/<optimiser>``) without adding work to the step. Reading a value off an accelerator
+    is a host sync, so there the guard only keeps references to the steps' detached metrics and
+    looks at the logging window's means, which the loop reads anyway when it writes a log row
+    (every ``log_every`` steps and before every checkpoint or report): a NaN or inf in any step
+    makes its window's mean non-finite, and only then are the kept steps read to find the first bad
+    one. On a CPU device reading is free, so every step is checked at once. Either way the run
+    stops with a :class:`TrainingError` naming the step and the metric, and nothing after the bad
+    step is checkpointed or written.
     """
 
     def __init__(self, run_name: str, device: torch.device) -> None:
         self.run_name = run_name
         self.eager = device.type == "cpu"
-        self.pending: list[tuple[int, list[str], torch.Tensor]] = []
+        self.pending: list[tuple[int, Mapping[str, Any]]] = []
 
     def add(self, step: int, metrics: Mapping[str, Any]) -> None:
-        """Record step ``step``'s metrics (checked at once on CPU, else at the next :meth:`check`).
-
-        Plain numbers are checked here; tensors are stacked on their device, without a sync.
-        """
-        names = [name for name, value in metrics.items() if isinstance(value, torch.Tensor)]
-        for name, value in metrics.items():
-            if name not in names and not math.isfinite(value):
-                self._fail(step, name, value)
-        if names:
-            device = metrics[names[0]].device
-            values = torch.stack([metrics[name].detach().reshape(()).to(device, torch.float32) for name in names])
-            self.pending.append((step, names, values))
+        """Step ``step``'s detached metrics: checked now on a CPU, else kept for :meth:`check`."""
         if self.eager:
-            self.check()
+            self._raise_first_bad([(step, metrics)])
+        else:
+            self.pending.append((step, metrics))
 
-    def check(self) -> None:
-        """Raise :class:`TrainingError` for the first pending step with a non-finite value."""
-        if not self.pending:
-            return
+    def check(self, means: Mapping[str, float], step: int) -> None:
+        """At a log row: raise if a mean of the window that ends at ``step`` is not finite."""
         pending, self.pending = self.pending, []
-        if bool(torch.isfinite(torch.cat([values for _, _, values in pending])).all()):
-            return
-        for step, names, values in pending:
-            for name, value in zip(names, values.tolist(), strict=True):
-                if not math.isfinite(value):
-                    self._fail(step, name, value)
+        bad = [name for name, value in means.items() if not math.isfinite(value)]
+        if bad:
+            self._raise_first_bad(pending)
+            raise TrainingError(f"{self.run_name}: the mean of {bad[0]!r} over the steps up to step {step} is "
+                                f"{means[bad[0]]} (finite values beyond float range); training stopped, "
+                                f"no model written")
 
-    def _fail(self, step: int, name: str, value: float) -> None:
-        what = "gradient norm" if name.startswith("grad_norm/") else "loss"
-        raise TrainingError(f"{self.run_name}: non-finite {what} {name!r} = {value} at step {step}; "
-                            f"training stopped, no model written")
+    def _raise_first_bad(self, steps: Sequence[tuple[int, Mapping[str, Any]]]) -> None:
+        for step, metrics in steps:
+            for name, value in metrics.items():
+                value = float(value)
+                if not math.isfinite(value):
+                    what = "gradient norm" if name.startswith("grad_norm/") else "loss"
+                    raise TrainingError(f"{self.run_name}: non-finite {what} {name!r} = {value} at step {step}; "
+                                        f"training stopped, no model written")
 
 
 def _train_step(spec: TrainSpec, run: _Run, ctx: StepContext, batch: Any) -> dict[str, Any]:
-    """One step: the stage's step, then schedulers and EMAs."""
+    """One step: the stage's step, then schedulers and EMAs; returns its metrics, detached."""
     ctx.step, ctx.epoch = run.pos.step, run.pos.epoch
     ctx.extra_metrics = {}
     out = dict(spec.step(to_device(batch, ctx.device), ctx))
@@ -635,7 +629,7 @@ def _train_step(spec: TrainSpec, run: _Run, ctx: StepContext, batch: Any) -> dic
         scheduler.step()
     for name, ema in run.emas.items():
         ema.update(run.raw[name])
-    return {**out, **ctx.extra_metrics}
+    return {k: v.detach() if isinstance(v, torch.Tensor) else float(v) for k, v in {**out, **ctx.extra_metrics}.items()}
 
 
 def train_loop(session: Session, spec: TrainSpec, config: dict, info: RunInfo) -> None:
@@ -678,16 +672,17 @@ def _after_step(run: _Run, session: Session, s: LoopSettings, info: RunInfo, win
                 progress: tracking.Progress, wandb_run: Any, last_checkpoint: int, guard: FiniteGuard) -> int:
     """Log, checkpoint and report as the step count asks; returns the last checkpoint step.
 
-    Every log row, checkpoint and report is preceded by the guard's check: nothing non-finite
-    is ever logged as a result or saved.
+    Every log row, checkpoint and report is preceded by the guard's check: nothing after a
+    non-finite step is logged as a result or saved.
     """
     step = run.pos.step
     is_last = step >= s.max_steps
     do_ckpt = is_last or step % max(1, info.checkpoint_every) == 0
     do_report = info.report_every > 0 and step % info.report_every == 0
     if is_last or do_ckpt or do_report or step % max(1, s.log_every) == 0:
-        guard.check()
-        row = _log_row(run, window, progress, s, session, wandb_run)
+        means = window.pop()
+        guard.check(means, step)
+        row = _log_row(run, means, progress, s, session, wandb_run)
         metrics = {k: v for k, v in row.items() if isinstance(v, int | float)}
         if do_ckpt:
             _checkpoint(run, session, metrics)

@@ -1,20 +1,31 @@
-"""Stage extract_features on a small HumanML3D-layout dataset made from the real fixture clip."""
+"""Stage extract_features on a small HumanML3D-layout dataset made from the real fixture clip, and
+the feature store's checks of what it wrote (pipelines/feature_store.py).
+
+The command-line cases run the real ``python -m stages.<name>`` and check the exit status, the one
+line on stderr naming the file, and that a previous output is left byte-identical.
+"""
 
 import json
+import os
+import shutil
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from data.features import features_from_joints
+from data.features import features_from_joints, grouped_mean_std
 from data.humanml3d import Caption
 from data.humanml3d_writer import Clip, write_dataset
 from data.skeleton import HUMANML3D
-from data.store import read_split
+from data.store import StoredItem, read_split, write_split
 from pipelines.config import compose_params
+from pipelines.feature_store import FeatureStore
 from stages.extract_features import main, run
 
 FIXTURE = Path(__file__).parent / "fixtures" / "humanml3d" / "new_joints_012314.npy"
+REPO = Path(__file__).resolve().parent.parent
 CAPTIONS = ["a person walks forward", "someone steps ahead slowly", "a man kicks with the left leg"]
 
 
@@ -123,3 +134,152 @@ def test_skip_mode_reports_what_it_skipped(dataset, tmp_path):
     assert len(skipped) == 1 and skipped[0]["path"].endswith("0002.npy")
     assert {i.clip_id for i in read_split(out / "train.parquet")} == {"0000", "0001", "0003", "0004", "0005"}
     assert json.loads((out / "meta.json").read_text())["skipped"] == 1
+
+
+@pytest.mark.slow  # a whole extract_features stage run
+def test_skip_mode_summarises_on_the_console(dataset, tmp_path, capsys):
+    root = _corrupt_copy(dataset, tmp_path)
+    with open(root / "test.txt", "a") as fh:
+        fh.write("0001\n0003\n")  # two train clips also listed for test
+    out = run(_params(root, tmp_path / "features", on_error="skip"))
+    err = capsys.readouterr().err.splitlines()  # with the progress bars
+    header = f"extract_features: data.on_error=skip left out 3 problem(s); all of them in {out}/skipped.json"
+    assert err[err.index(header):] == [header, "  unreadable file: 1 (0002.npy)",
+                                       "  id in several splits: 2 (test.txt:3, test.txt:4)"]
+    assert {i.clip_id for i in read_split(out / "test.parquet")} == {"0007", "0008"}
+    skipped = json.loads((out / "skipped.json").read_text())
+    assert [(p["kind"], Path(p["path"]).name) for p in skipped] == [
+        ("unreadable file", "0002.npy"), ("id in several splits", "test.txt:3"), ("id in several splits", "test.txt:4")]
+
+
+def test_empty_split_fails_in_one_line(dataset, tmp_path, monkeypatch):
+    root = tmp_path / "copy"
+    shutil.copytree(dataset, root)
+    (root / "val.txt").write_text("")
+    params = _params(root, tmp_path / "features")
+    monkeypatch.setattr("pipelines.cli.load_params", lambda argv: params)
+    with pytest.raises(SystemExit) as exc:
+        main([])
+    assert str(exc.value) == (f"extract_features: bad input, nothing written: {root}/val.txt: split 'val' is empty: "
+                              "the file lists no clip id")
+    assert not (tmp_path / "features").exists()
+
+
+def test_zero_std_is_refused_before_writing(dataset, tmp_path, monkeypatch):
+    """Statistics are checked before the store is written (grouped_mean_std floors zeros; this is the last line)."""
+    def zero_std(frames, joints_num):
+        mean, std = grouped_mean_std(frames, joints_num)
+        std[259:] = 0.0
+        return mean, std
+
+    monkeypatch.setattr("stages.extract_features.grouped_mean_std", zero_std)
+    out = tmp_path / "features"
+    params = _params(dataset, out)
+    params["features"]["workers"] = 1
+    with pytest.raises(ValueError) as exc:
+        run(params)
+    assert str(exc.value) == (f"{out}/std.npy: std is 0 for dims [259, 260, 261, 262] (4 of 263); "
+                              "normalising would divide by it")
+    assert not out.exists()
+
+
+# --------------------------------------------------------------------------- the store's checks on read
+
+
+def tiny_store(root: Path, dim: int = 263) -> Path:
+    """A feature store by hand: 4 items of the fixture clip (``dim``-wide features), its statistics, meta.json."""
+    feats = features_from_joints(np.load(FIXTURE), HUMANML3D)[:, :dim]
+    items = [StoredItem(f"{k:04d}", f"{k:04d}", None, 0, feats[10 * k : 10 * k + 60], ["a person walks"],
+                        [["a/DET", "person/NOUN", "walks/VERB"]], np.zeros((1, 4), np.float32),
+                        [np.zeros((3, 4), np.float16)]) for k in range(4)]
+    root.mkdir(parents=True)
+    write_split(root / "train.parquet", items, dim, 4, 4)
+    mean, std = grouped_mean_std(feats, 22) if dim == 263 else (feats.mean(0), feats.std(0) + 1)
+    np.save(root / "mean.npy", mean)
+    np.save(root / "std.npy", std)
+    text_encoder = {"name": "none", "path": None, "max_length": 8, "dim": 4, "token_dim": 4}
+    (root / "meta.json").write_text(json.dumps({"feature_dim": dim, "text_encoder": text_encoder}))
+    return root
+
+
+def test_feature_store_refuses_a_zero_std(tmp_path):
+    store = tiny_store(tmp_path / "features")
+    assert FeatureStore(store).feature_dim == 263
+    std = np.load(store / "std.npy")
+    std[[3, 100, 101]] = 0.0
+    np.save(store / "std.npy", std)
+    with pytest.raises(ValueError) as exc:
+        FeatureStore(store)
+    assert str(exc.value) == (f"{store}/std.npy: std is 0 for dims [3, 100, 101] (3 of 263); "
+                              "normalising would divide by it")
+    np.save(store / "std.npy", np.where(np.arange(263) == 7, np.nan, 1.0))
+    with pytest.raises(ValueError, match=r"std.npy: std is not finite for dims \[7\]"):
+        FeatureStore(store)
+
+
+def test_feature_store_checks_statistics_against_the_feature_dim(tmp_path):
+    store = tiny_store(tmp_path / "features")
+    for name in ("mean", "std"):
+        np.save(store / f"{name}.npy", np.ones(7, np.float32))
+    with pytest.raises(ValueError) as exc:
+        FeatureStore(store)
+    assert str(exc.value) == f"{store}/mean.npy: mean has shape (7,), the features have 263 dims: expected (263,)"
+    # without a feature_dim in meta.json the Parquet width decides
+    other = tiny_store(tmp_path / "kit_wide", dim=251)
+    np.save(other / "mean.npy", np.zeros(263, np.float32))
+    np.save(other / "std.npy", np.ones(263, np.float32))
+    (other / "meta.json").write_text(json.dumps({"text_encoder": json.loads((store / "meta.json").read_text())
+                                                 ["text_encoder"]}))
+    with pytest.raises(ValueError) as exc:
+        FeatureStore(other)
+    assert str(exc.value) == (f"{other}/train.parquet: features are (251,) per frame but {other}/mean.npy "
+                              "and std.npy are (263,)")
+
+
+def _tree(directory: Path) -> dict[str, bytes]:
+    """Relative path -> bytes of every file below ``directory``."""
+    return {str(p.relative_to(directory)): p.read_bytes() for p in sorted(directory.rglob("*")) if p.is_file()}
+
+
+def _previous_output(directory: Path) -> dict[str, bytes]:
+    """A previous output folder (what a stage wrote before), returned as :func:`_tree`."""
+    directory.mkdir(parents=True)
+    (directory / "model.pt").write_bytes(b"previous model")
+    (directory / "metrics.json").write_text('{"loss": 0.5}\n')
+    return _tree(directory)
+
+
+def _stage(module: str, *overrides: str) -> subprocess.CompletedProcess:
+    env = {**os.environ, "WANDB_MODE": "disabled", "HF_HUB_OFFLINE": "1", "TRANSFORMERS_OFFLINE": "1"}
+    return subprocess.run([sys.executable, "-m", module, *overrides], cwd=REPO, env=env, capture_output=True,
+                          text=True, timeout=300)
+
+
+@pytest.mark.slow  # a stage command in a subprocess
+def test_train_vae_command_refuses_a_zero_std_store(tmp_path):
+    store = tiny_store(tmp_path / "features")
+    np.save(store / "std.npy", np.zeros(263, np.float32))
+    before = _previous_output(tmp_path / "artifacts" / "train_vae")
+    proc = _stage("stages.train_vae", "scale=smoke", f"features.out={store}",
+                  f"paths.artifacts={tmp_path / 'artifacts'}", f"paths.ray_storage={tmp_path / 'ray'}")
+    assert proc.returncode == 1, proc.stderr
+    assert proc.stderr.splitlines() == [f"train_vae: {store}/std.npy: std is 0 for dims [0, 1, 2, 3, 4, 5, 6, 7, ...] "
+                                        "(263 of 263); normalising would divide by it"]
+    assert _tree(tmp_path / "artifacts" / "train_vae") == before
+    assert not (tmp_path / "ray").exists()
+
+
+@pytest.mark.slow  # a stage command in a subprocess
+def test_extract_features_command_refuses_an_id_in_two_splits(dataset, tmp_path):
+    root = tmp_path / "copy"
+    shutil.copytree(dataset, root)
+    with open(root / "test.txt", "a") as fh:
+        fh.write("0001\n")  # also line 2 of train.txt
+    out = tmp_path / "features"
+    before = _previous_output(out)
+    proc = _stage("stages.extract_features", "dataset=synthetic", f"data.root={root}", f"features.out={out}")
+    assert proc.returncode == 1, proc.stderr
+    assert proc.stderr.splitlines() == [
+        f"extract_features: bad input, nothing written: {root}/test.txt:3: clip id '0001' is also in "
+        f"{root}/train.txt:2: a clip in two splits leaks between them"]
+    assert _tree(out) == before

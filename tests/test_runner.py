@@ -39,6 +39,7 @@ from pipelines.runner import (
     TrainingError,
     TrainSpec,
     _epoch_loader,
+    _Window,
     bucket_by_length,
     decide_use_gpu,
     fit_retrying,
@@ -195,18 +196,24 @@ def test_non_finite_step_stops_the_run_at_once_and_writes_nothing(tmp_path: Path
     assert not (tmp_path / "out").exists()
 
 
-def test_guard_on_an_accelerator_waits_for_the_next_sync() -> None:
-    """Off the CPU the guard reads its flags only at check() (log rows): no per-step host sync."""
-    guard = FiniteGuard("toy-run", torch.device("cuda"))  # never touches CUDA: the tensors stay here
-    guard.add(0, {"loss": torch.tensor(1.0), "grad_norm/net": torch.tensor(0.5)})
-    guard.add(1, {"loss": torch.tensor(2.0), "grad_norm/net": torch.tensor(float("inf"))})
-    guard.add(2, {"loss": torch.tensor(float("nan")), "grad_norm/net": torch.tensor(0.5)})
+def test_guard_on_an_accelerator_waits_for_the_next_log_row() -> None:
+    """Off the CPU the guard reads nothing per step: a NaN shows in the window's mean at the log row,
+    and only then are the kept steps read to name the first bad one."""
+    guard, window = FiniteGuard("toy-run", torch.device("cuda")), _Window()  # CUDA never touched
+    steps = [{"loss": 1.0, "grad_norm/net": 0.5}, {"loss": 2.0, "grad_norm/net": float("inf")},
+             {"loss": float("nan"), "grad_norm/net": 0.5}]
+    for step, values in enumerate(steps):
+        metrics = {name: torch.tensor(value) for name, value in values.items()}
+        guard.add(step, metrics)  # no error yet: nothing is read
+        window.add(metrics)
     with pytest.raises(TrainingError, match=r"^toy-run: non-finite gradient norm 'grad_norm/net' = inf at step 1;"):
-        guard.check()
+        guard.check(window.pop(), step=3)
     guard.add(3, {"loss": torch.tensor(1.0)})
-    guard.check()  # the window was consumed: a later good step passes
-    with pytest.raises(TrainingError, match=r"non-finite loss 'acc' = nan at step 4"):
-        guard.add(4, {"acc": float("nan")})  # plain numbers cost no sync: checked at once
+    guard.check({"loss": 1.0}, step=4)  # the bad window is gone: a good one passes
+    guard.add(4, {"loss": torch.tensor(3e38)})
+    guard.add(5, {"loss": torch.tensor(3e38)})
+    with pytest.raises(TrainingError, match=r"^toy-run: the mean of 'loss' over the steps up to step 6 is inf"):
+        guard.check({"loss": float("inf")}, step=6)  # finite steps whose sum overflowed
 
 
 class _FakeTrainer:
