@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from data.atomic import atomic_directory
 from data.features import features_from_joints, grouped_mean_std
 from data.humanml3d import Caption
 from data.humanml3d_writer import Clip, write_dataset
@@ -241,11 +242,12 @@ def _tree(directory: Path) -> dict[str, bytes]:
     return {str(p.relative_to(directory)): p.read_bytes() for p in sorted(directory.rglob("*")) if p.is_file()}
 
 
-def _previous_output(directory: Path) -> dict[str, bytes]:
-    """A previous output folder (what a stage wrote before), returned as :func:`_tree`."""
-    directory.mkdir(parents=True)
-    (directory / "model.pt").write_bytes(b"previous model")
-    (directory / "metrics.json").write_text('{"loss": 0.5}\n')
+def _previous_output(directory: Path, owner: str) -> dict[str, bytes]:
+    """A previous output of stage ``owner`` (written as stages write theirs), returned as :func:`_tree`."""
+    directory.parent.mkdir(parents=True, exist_ok=True)
+    with atomic_directory(directory, owner=owner) as tmp:
+        (tmp / "model.pt").write_bytes(b"previous model")
+        (tmp / "metrics.json").write_text('{"loss": 0.5}\n')
     return _tree(directory)
 
 
@@ -259,7 +261,7 @@ def _stage(module: str, *overrides: str) -> subprocess.CompletedProcess:
 def test_train_vae_command_refuses_a_zero_std_store(tmp_path):
     store = tiny_store(tmp_path / "features")
     np.save(store / "std.npy", np.zeros(263, np.float32))
-    before = _previous_output(tmp_path / "artifacts" / "train_vae")
+    before = _previous_output(tmp_path / "artifacts" / "train_vae", "train_vae")
     proc = _stage("stages.train_vae", "scale=smoke", f"features.out={store}",
                   f"paths.artifacts={tmp_path / 'artifacts'}", f"paths.ray_storage={tmp_path / 'ray'}")
     assert proc.returncode == 1, proc.stderr
@@ -276,7 +278,7 @@ def test_extract_features_command_refuses_an_id_in_two_splits(dataset, tmp_path)
     with open(root / "test.txt", "a") as fh:
         fh.write("0001\n")  # also line 2 of train.txt
     out = tmp_path / "features"
-    before = _previous_output(out)
+    before = _previous_output(out, "extract_features")
     proc = _stage("stages.extract_features", "dataset=synthetic", f"data.root={root}", f"features.out={out}")
     assert proc.returncode == 1, proc.stderr
     assert proc.stderr.splitlines() == [
