@@ -34,7 +34,9 @@ How it runs (DESIGN.md "Facts about the stack"; reference/pipeline_stack.md sect
 * the Tune experiment lives at ``<storage>/sweep-<stage>-<hash>``, the hash covering the
   space, the settings and ``params[<stage>]`` (:func:`experiment_name`). Started again with
   the same arguments, an interrupted sweep is restored (``Tuner.restore``): finished trials
-  are kept, unfinished ones run again (their Train runs resume from their checkpoints);
+  are kept, unfinished ones run again (their Train runs resume from their checkpoints).
+  Tune's experiment state is Ray's own pickle, so a restore trusts whoever can write the
+  storage (our checkpoints there load with ``weights_only=True``; Ray's files cannot);
 * the results are read back from the experiment state Tune saved, the state a restore
   resumes (after a SIGINT ``tuner.fit()`` returns normally, its in-memory grid showing the
   trials it killed as TERMINATED). Trial statuses (:func:`trial_status`): ``completed``
@@ -86,6 +88,7 @@ from pipelines.runner import (
     build_trainer,
     decide_use_gpu,
     ensure_ray,
+    fit_retrying,
     run_training,
 )
 from pipelines.stage import ray_storage
@@ -417,9 +420,13 @@ def trial_driver(config: dict, job: SweepJob) -> None:
     # With a validation hook the trial reports once, after training (Tune checks that every report
     # holds the ranking metric); without one, training metrics are reported as they come.
     callbacks = [SweepReportCallback(planned)] if job.target.validate is None else []
-    trainer = build_trainer(stage, job.target.spec, loop_config, job.ray, job.storage,
-                            callbacks=callbacks, run_name=f"{stage}-{trial_id}")
-    result = trainer.fit()
+    run_name = f"{stage}-{trial_id}"
+
+    def make_trainer() -> Any:
+        return build_trainer(stage, job.target.spec, loop_config, job.ray, job.storage, callbacks=callbacks,
+                             run_name=run_name, max_failures=0)
+
+    result = fit_retrying(make_trainer, job.ray.max_failures, run_name)
     if job.target.validate is not None and result.checkpoint is not None:
         with result.checkpoint.as_directory() as directory:
             state = load_state(Path(directory))
