@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -53,33 +54,72 @@ def _name(name: str, row: dict[str, float]) -> str:
     return f"{name} (†{int(row['eval_items'])})" if "eval_items" in row else name
 
 
-def _markdown_table(table: dict[str, dict[str, float]], columns: list[tuple[str, str, int]]) -> list[str]:
-    return ["| Method | " + " | ".join(h for _, h, _ in columns) + " |", "|---" * (len(columns) + 1) + "|"] + [
-        "| " + _name(name, row) + " | " + " | ".join(_cell(row, k, d) for k, _, d in columns) + " |"
-        for name, row in table.items()]
+@dataclass(frozen=True)
+class Section:
+    """One table of the report: its heading (None for the main table), rows and columns."""
+
+    heading: str | None
+    rows: dict[str, dict[str, float]]
+    columns: list[tuple[str, str, int]]
+
+
+def report_title(meta: dict[str, Any]) -> str:
+    """What was evaluated: the dataset, its test items and the replications."""
+    return f"Evaluation on {meta['dataset']} ({meta['test_items']} test items, {meta['replications']} replications)"
+
+
+def report_sections(table: dict[str, dict[str, float]]) -> list[Section]:
+    """The paper-style table, then the control table if any row has one, then the action-to-motion table
+    if any row is action-conditioned (those rows are not in the first table)."""
+    actions = {name: row for name, row in table.items() if "Accuracy" in row}
+    texts = {name: row for name, row in table.items() if name not in actions}
+    sections = [Section(None, texts, COLUMNS)]
+    controlled = {name: row for name, row in texts.items() if "avg_err_m" in row}
+    if controlled:
+        sections.append(Section("Trajectory control (errors on the controlled keyframes of the test crops' own "
+                                "joints)", controlled, CONTROL_COLUMNS))
+    if actions:
+        sections.append(Section("Action-to-motion (the labelled single-action test motions; FID, Diversity and "
+                                "MultiModality in the action recogniser's features, not comparable with the table "
+                                "above)", actions, ACTION_COLUMNS))
+    return sections
+
+
+def report_notes(table: dict[str, dict[str, float]]) -> list[str]:
+    """The notes under the tables: what →, ± and AITS mean, and (†K) when a row has ``eval_items``."""
+    notes = ["→: closer to Real (Real-action) is better. ± is 1.96·std/√R over replications. "
+             "AITS: seconds per sentence, batch 1, warm, loading excluded."]
+    if any("eval_items" in row and "Accuracy" not in row for row in table.values()):
+        notes.append("(†K): evaluated on the first K captions of each replication's draw, not the whole test set "
+                     "(too slow): its FID (biased upward by few samples) and Diversity compare only with rows of "
+                     "the same K; no MultiModality.")
+    return notes
+
+
+def table_cells(section: Section) -> tuple[list[str], list[list[str]]]:
+    """A section's header and its rows of cells as text, the same text as in the markdown tables."""
+    header = ["Method", *(h for _, h, _ in section.columns)]
+    rows = [[_name(name, row), *(_cell(row, k, d) for k, _, d in section.columns)]
+            for name, row in section.rows.items()]
+    return header, rows
+
+
+def _markdown_table(section: Section) -> list[str]:
+    header, rows = table_cells(section)
+    return ["| " + " | ".join(header) + " |", "|---" * len(header) + "|"] + [
+        "| " + " | ".join(cells) + " |" for cells in rows]
 
 
 def report_markdown(table: dict[str, dict[str, float]], meta: dict[str, Any]) -> str:
-    """The paper-style table (mean ± 95% CI over replications), then the control table if any row has one,
-    then the action-to-motion table if any row is action-conditioned."""
-    actions = {name: row for name, row in table.items() if "Accuracy" in row}
-    table = {name: row for name, row in table.items() if name not in actions}
-    lines = [f"# Evaluation on {meta['dataset']} ({meta['test_items']} test items, {meta['replications']} "
-             "replications)", "", *_markdown_table(table, COLUMNS)]
-    controlled = {name: row for name, row in table.items() if "avg_err_m" in row}
-    if controlled:
-        lines += ["", "## Trajectory control (errors on the controlled keyframes of the test crops' own joints)", "",
-                  *_markdown_table(controlled, CONTROL_COLUMNS)]
-    if actions:
-        lines += ["", "## Action-to-motion (the labelled single-action test motions; FID, Diversity and "
-                  "MultiModality in the action recogniser's features, not comparable with the table above)", "",
-                  *_markdown_table(actions, ACTION_COLUMNS)]
-    lines += ["", "→: closer to Real (Real-action) is better. ± is 1.96·std/√R over replications. "
-              "AITS: seconds per sentence, batch 1, warm, loading excluded."]
-    if any("eval_items" in row for row in table.values()):
-        lines += ["", "(†K): evaluated on the first K captions of each replication's draw, not the whole test set "
-                  "(too slow): its FID (biased upward by few samples) and Diversity compare only with rows of the "
-                  "same K; no MultiModality."]
+    """The report as markdown: title, the tables of :func:`report_sections` (mean ± 95% CI over
+    replications) and the notes."""
+    lines = [f"# {report_title(meta)}"]
+    for section in report_sections(table):
+        if section.heading is not None:
+            lines += ["", f"## {section.heading}"]
+        lines += ["", *_markdown_table(section)]
+    for note in report_notes(table):
+        lines += ["", note]
     return "\n".join(lines) + "\n"
 
 

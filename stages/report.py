@@ -3,15 +3,15 @@
 ``python -m stages.report [key=value ...]`` reads ``artifacts/eval/real/`` and
 ``artifacts/eval/<family>/`` for every family of the model registry and writes
 ``artifacts/eval/metrics.json`` (``{row: {metric: value}}``, the rows in registry order after
-``Real``), ``report.md`` (the paper-style table, also printed), ``fid_vs_time.png`` and
-``samples/`` (every family's rendered sample animations). Each file is replaced atomically.
+``Real``), ``report.md`` (the paper-style table, also printed), ``fid_vs_time.png``, ``samples/``
+(every family's rendered sample animations) and ``report.html`` (the tables, the plot and the samples
+in one self-contained page that opens offline). Each file is replaced atomically.
 """
 
 from __future__ import annotations
 
 import json
 import os
-import shutil
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -20,6 +20,7 @@ from data.atomic import atomic_directory, check_output
 from pipelines.cli import artifacts_dir, run_main
 from pipelines.registry import FAMILIES
 from pipelines.report import merge_tables, plot_fid_vs_time, report_markdown
+from pipelines.report_html import report_html
 
 PARAMS = ("paths.artifacts",)
 SOURCES = ("real", *FAMILIES)
@@ -45,19 +46,34 @@ def _replace(path: Path, write: Any) -> None:
         tmp.unlink(missing_ok=True)
 
 
+def _read_samples(eval_dir: Path) -> list[tuple[str, bytes]]:
+    """Every family's sample files ``(name, bytes)``, families in ``SOURCES`` order, names sorted."""
+    return [(path.name, path.read_bytes())
+            for name in SOURCES for path in sorted((eval_dir / name / "samples").glob("*"))]
+
+
+def _write_html(eval_dir: Path, table: dict[str, dict[str, float]], meta: dict[str, Any],
+                samples: list[tuple[str, bytes]]) -> None:
+    """``report.html`` from the merged table, the plot already written and the samples."""
+    page = report_html(table, meta, (eval_dir / "fid_vs_time.png").read_bytes(), samples)
+    _replace(eval_dir / "report.html", lambda p: p.write_text(page, encoding="utf-8"))
+
+
 def run(params: dict[str, Any]) -> dict[str, dict[str, float]]:
     """Merge, write and print the report; returns the merged table."""
     eval_dir = artifacts_dir(params) / "eval"
     check_output(eval_dir / "samples", owner="report")
     table = merge_tables([_read_json(eval_dir / name / "metrics.json") for name in SOURCES])
-    report = report_markdown(table, _read_json(eval_dir / "real" / "meta.json"))
+    meta = _read_json(eval_dir / "real" / "meta.json")
+    samples = _read_samples(eval_dir)
+    report = report_markdown(table, meta)
     _replace(eval_dir / "metrics.json", lambda p: p.write_text(json.dumps(table, indent=2) + "\n"))
     _replace(eval_dir / "report.md", lambda p: p.write_text(report, encoding="utf-8"))
     _replace(eval_dir / "fid_vs_time.png", lambda p: plot_fid_vs_time(table, p))
     with atomic_directory(eval_dir / "samples", owner="report") as tmp:
-        for name in SOURCES:
-            for gif in sorted((eval_dir / name / "samples").glob("*")):
-                shutil.copy2(gif, tmp / gif.name)
+        for name, data in samples:
+            (tmp / name).write_bytes(data)
+    _write_html(eval_dir, table, meta, samples)
     print(report)
     return table
 

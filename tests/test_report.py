@@ -1,0 +1,178 @@
+"""The report stage: report.md unchanged by the HTML work, and report.html self-contained and complete.
+
+The fixture ``tests/fixtures/eval/`` is a real tiny-profile evaluation (every family's metrics.json,
+real/meta.json) with the report.md the stage wrote from it. report.html is checked by parsing it with
+the standard library (every table cell as in report.md, every image decoding to its file's bytes and
+size, nothing external) and, where Debian's chromium is installed, by a headless screenshot.
+"""
+
+from __future__ import annotations
+
+import base64
+import io
+import json
+import shutil
+import subprocess
+from html.parser import HTMLParser
+from pathlib import Path
+
+import pytest
+from PIL import Image
+
+from pipelines.report import merge_tables, report_markdown
+from pipelines.report_html import report_html
+from stages import report as report_stage
+
+FIXTURE = Path(__file__).parent / "fixtures" / "eval"
+SAMPLE_ROWS = {"mld": "MLD-DDIM50", "emdm": "EMDM-10"}
+SAMPLE_SIZE = (40, 30)
+SAMPLE_COLOUR = (200, 30, 160)  # in no other part of the page: counted in the screenshot
+
+
+class PageParser(HTMLParser):
+    """The page's tables (rows of cell texts), images (attributes) and every tag name used."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.tables: list[list[list[str]]] = []
+        self.images: list[dict[str, str]] = []
+        self.tags: set[str] = set()
+        self.urls: list[str] = []
+        self._cell: list[str] | None = None
+
+    def handle_starttag(self, tag: str, attrs: list[tuple[str, str | None]]) -> None:
+        self.tags.add(tag)
+        values = {name: value or "" for name, value in attrs}
+        self.urls += [values[name] for name in ("src", "href") if name in values]
+        if tag == "table":
+            self.tables.append([])
+        elif tag == "tr":
+            self.tables[-1].append([])
+        elif tag in ("td", "th"):
+            self._cell = []
+        elif tag == "img":
+            self.images.append(values)
+
+    def handle_endtag(self, tag: str) -> None:
+        if tag in ("td", "th"):
+            self.tables[-1][-1].append("".join(self._cell))
+            self._cell = None
+
+    def handle_data(self, data: str) -> None:
+        if self._cell is not None:
+            self._cell.append(data)
+
+
+def markdown_tables(text: str) -> list[list[list[str]]]:
+    """report.md's tables as rows of cell texts (the |---| line left out)."""
+    tables: list[list[list[str]]] = []
+    previous = ""
+    for line in text.splitlines():
+        if line.startswith("|") and not line.startswith("|---"):
+            if not previous.startswith("|"):
+                tables.append([])
+            tables[-1].append([cell.strip() for cell in line.strip("|").split("|")])
+        previous = line
+    return tables
+
+
+def _gif(path: Path, colour: tuple[int, int, int]) -> None:
+    """Two frames of ``colour``, the second with a white 4x4 corner: whichever frame a browser shows,
+    all but 16 pixels have the colour."""
+    frames = [Image.new("RGB", SAMPLE_SIZE, colour), Image.new("RGB", SAMPLE_SIZE, colour)]
+    frames[1].paste((255, 255, 255), (0, 0, 4, 4))
+    frames[0].save(path, save_all=True, append_images=frames[1:], duration=100, loop=0)
+
+
+@pytest.fixture()
+def artifacts(tmp_path: Path) -> Path:
+    """An artifacts/ tree with the fixture's evaluation outputs and two GIFs per sampled row."""
+    shutil.copytree(FIXTURE, tmp_path / "eval", ignore=shutil.ignore_patterns("report.md"))
+    for family, row in SAMPLE_ROWS.items():
+        (tmp_path / "eval" / family / "samples").mkdir()
+        for k in range(2):
+            _gif(tmp_path / "eval" / family / "samples" / f"{row}_{k}.gif", SAMPLE_COLOUR)
+    return tmp_path
+
+
+def _run_stage(artifacts: Path) -> Path:
+    report_stage.run({"paths": {"artifacts": str(artifacts)}})
+    return artifacts / "eval"
+
+
+def test_report_markdown_is_the_real_runs_report() -> None:
+    """Splitting report_markdown into sections for the HTML page left its output byte for byte."""
+    tables = [json.loads((FIXTURE / name / "metrics.json").read_text()) for name in report_stage.SOURCES]
+    meta = json.loads((FIXTURE / "real" / "meta.json").read_text())
+    assert report_markdown(merge_tables(tables), meta) == (FIXTURE / "report.md").read_text(encoding="utf-8")
+
+
+def test_report_html_has_every_table_cell_of_report_md(artifacts: Path) -> None:
+    eval_dir = _run_stage(artifacts)
+    page = PageParser()
+    page.feed((eval_dir / "report.html").read_text(encoding="utf-8"))
+    expected = markdown_tables((eval_dir / "report.md").read_text(encoding="utf-8"))
+    assert [len(table) for table in expected] == [19, 5, 3]  # text-to-motion, control, action (with headers)
+    assert page.tables == expected
+
+
+def test_report_html_embeds_plot_and_samples_and_loads_nothing(artifacts: Path) -> None:
+    eval_dir = _run_stage(artifacts)
+    page = PageParser()
+    page.feed((eval_dir / "report.html").read_text(encoding="utf-8"))
+    assert not {"script", "link", "iframe", "object", "embed"} & page.tags
+    assert all(url.startswith("data:image/") for url in page.urls), [url[:40] for url in page.urls]
+    # the plot, then the samples: families in the stage's order (mld before emdm), files sorted
+    files = [eval_dir / "fid_vs_time.png", *sorted((eval_dir / "mld" / "samples").glob("*")),
+             *sorted((eval_dir / "emdm" / "samples").glob("*"))]
+    assert len(page.images) == len(files) == 5
+    for image, path in zip(page.images, files, strict=True):
+        data = base64.b64decode(image["src"].split(",", 1)[1])
+        assert data == path.read_bytes(), path.name
+        size = Image.open(io.BytesIO(data)).size
+        assert (int(image["width"]), int(image["height"])) == size
+    assert size == SAMPLE_SIZE
+
+
+def test_report_html_is_deterministic(artifacts: Path) -> None:
+    first = _run_stage(artifacts).joinpath("report.html").read_bytes()
+    assert _run_stage(artifacts).joinpath("report.html").read_bytes() == first
+
+
+def test_report_html_refuses_a_sample_it_cannot_embed() -> None:
+    plot = io.BytesIO()
+    Image.new("RGB", (4, 3)).save(plot, format="PNG")
+    with pytest.raises(ValueError) as err:
+        report_html({}, {"dataset": "d", "test_items": 1, "replications": 1}, plot.getvalue(), [("MLD_0.mp4", b"")])
+    assert str(err.value) == "MLD_0.mp4: cannot embed in report.html (known image types: .gif, .png)"
+
+
+CHROMIUM = shutil.which("chromium") or shutil.which("chromium-headless-shell")
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(CHROMIUM is None, reason="Debian's chromium is not installed (apt-get install chromium)")
+def test_report_html_renders_in_headless_chromium(artifacts: Path, tmp_path: Path) -> None:
+    """The page as a browser draws it: not blank, with the tables' header cells, the plot's points and
+    every sample animation's pixels on screen."""
+    eval_dir = _run_stage(artifacts)
+    shot = tmp_path / "shot.png"
+    width, height = 1800, 3000
+    proc = subprocess.run([CHROMIUM, "--headless", "--no-sandbox", "--disable-gpu", "--hide-scrollbars",
+                           "--force-device-scale-factor=1", f"--window-size={width},{height}",
+                           f"--screenshot={shot}", (eval_dir / "report.html").as_uri()],
+                          capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0 and shot.is_file(), proc.stderr[-2000:]
+    image = Image.open(shot).convert("RGB")
+    assert image.size == (width, height)
+    counts = {colour: n for n, colour in image.getcolors(maxcolors=width * height)}
+    assert len(counts) > 50  # text, table, plot and animations: far from a blank page
+    assert counts.get((238, 238, 238), 0) > 5000  # th background: the three tables' header rows
+    plot = Image.open(eval_dir / "fid_vs_time.png").convert("RGB")
+    points = [(colour, n) for n, colour in plot.getcolors(maxcolors=plot.width * plot.height)
+              if max(colour) - min(colour) > 100]  # the scatter points' saturated colours
+    assert len(points) >= 5
+    assert all(counts.get(colour, 0) >= n for colour, n in points), points
+    samples = len(SAMPLE_ROWS) * 2
+    assert samples * (SAMPLE_SIZE[0] * SAMPLE_SIZE[1] - 16) <= counts.get(SAMPLE_COLOUR, 0) \
+        <= samples * SAMPLE_SIZE[0] * SAMPLE_SIZE[1]
