@@ -762,6 +762,25 @@ def ensure_ray(address: str | None, runtime_env: dict | None = None) -> bool:
     return True
 
 
+@contextlib.contextmanager
+def ray_connection(ray_cfg: Mapping[str, Any] | None) -> Iterator[None]:
+    """One Ray connection for several training runs of one stage.
+
+    :func:`run_training` connects (starting a local cluster when there is none) and shuts down
+    what it started; a stage with several runs wraps them in this so the local cluster starts
+    once. Nothing happens for in-process runs (``ray.num_workers: 0`` or ``ray.local``).
+    """
+    import ray
+
+    opts = RayOptions.from_dict(ray_cfg)
+    started = not opts.in_process and ensure_ray(opts.address, opts.runtime_env)
+    try:
+        yield
+    finally:
+        if started:
+            ray.shutdown()
+
+
 def decide_use_gpu(use_gpu: str | bool, num_workers: int, cluster: Mapping[str, float]) -> bool:
     """GPUs only when the cluster has one per worker; an explicit True without them raises."""
     have = cluster.get("GPU", 0) >= num_workers

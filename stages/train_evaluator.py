@@ -46,7 +46,7 @@ from pipelines.recogniser import GROUP as RECOGNISER_GROUP
 from pipelines.recogniser import SPEC as RECOGNISER_SPEC
 from pipelines.recogniser import check_section as check_recogniser
 from pipelines.recogniser import recogniser_config
-from pipelines.runner import Components, StepContext, TrainSpec
+from pipelines.runner import Components, StepContext, TrainSpec, ray_connection
 from pipelines.stage import TrainingStage, checks, loop_config, train
 
 if TYPE_CHECKING:
@@ -150,10 +150,12 @@ RECOGNISER = TrainingStage(
 
 
 def run(params: dict[str, Any]) -> Path:
-    """Train the evaluator's two parts and the action recogniser; returns the evaluator's output directory."""
-    train(MOVEMENT, params)
-    out = train(MATCHING, params).out_dir
-    train(RECOGNISER, params)
+    """Train the evaluator's two parts and the action recogniser (three runs on one Ray connection);
+    returns the evaluator's output directory."""
+    with ray_connection(params["ray"]):
+        train(MOVEMENT, params)
+        out = train(MATCHING, params).out_dir
+        train(RECOGNISER, params)
     return out
 
 

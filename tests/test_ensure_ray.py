@@ -8,7 +8,7 @@ import pytest
 import ray
 import ray._private.services as services
 
-from pipelines.runner import ensure_ray
+from pipelines.runner import ensure_ray, ray_connection
 
 
 @pytest.fixture
@@ -47,3 +47,29 @@ def test_already_connected_does_nothing(monkeypatch) -> None:
     monkeypatch.setattr(ray, "is_initialized", lambda: True)
     monkeypatch.setattr(ray, "init", lambda **kwargs: pytest.fail("ray.init called"))
     assert ensure_ray("10.0.0.1:6379") is False
+
+
+def test_ray_connection_connects_once_and_shuts_down_what_it_started(monkeypatch) -> None:
+    """A stage with several runs connects once; the runs inside find Ray connected (and leave it up)."""
+    state = {"connected": False, "inits": 0, "shutdowns": 0}
+
+    def init(**kwargs: Any) -> None:
+        state["connected"], state["inits"] = True, state["inits"] + 1
+
+    def shutdown() -> None:
+        state["connected"], state["shutdowns"] = False, state["shutdowns"] + 1
+
+    monkeypatch.setattr(ray, "is_initialized", lambda: state["connected"])
+    monkeypatch.setattr(ray, "init", init)
+    monkeypatch.setattr(ray, "shutdown", shutdown)
+    monkeypatch.setattr(services, "canonicalize_bootstrap_address", lambda addr, temp_dir=None: None)
+    monkeypatch.delenv("RAY_ADDRESS", raising=False)
+    with ray_connection({"num_workers": 1}):
+        assert state == {"connected": True, "inits": 1, "shutdowns": 0}
+        assert [ensure_ray(None) for _ in range(3)] == [False, False, False]  # what each run's call sees
+    assert state == {"connected": False, "inits": 1, "shutdowns": 1}
+    with ray_connection({"num_workers": 0}), ray_connection({"num_workers": 2, "local": True}):
+        assert state["inits"] == 1  # in-process runs need no Ray
+    with pytest.raises(RuntimeError), ray_connection({"num_workers": 1}):
+        raise RuntimeError("a run failed")
+    assert state == {"connected": False, "inits": 2, "shutdowns": 2}  # shut down on failure too
