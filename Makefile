@@ -12,7 +12,7 @@ export WANDB_MODE ?= offline
 export DVC_NO_ANALYTICS ?= 1
 export RAY_USAGE_STATS_ENABLED ?= 0
 
-.PHONY: setup repro test test-fast lint params bench clean
+.PHONY: setup repro test test-fast lint params bench clean push pull exp
 
 $(STAMP): pyproject.toml
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
@@ -38,6 +38,20 @@ lint: setup
 
 params: setup  ## re-compose params.yaml from conf/ (e.g. make params ARGS="scale=smoke")
 	$(BIN)/python -m pipelines.config $(ARGS)
+
+push: setup  ## upload the outputs that dvc.lock records to the DVC remote (README, "Versions")
+	$(BIN)/dvc push $(ARGS)
+
+pull: setup  ## download the outputs that dvc.lock records from the DVC remote into artifacts/
+	$(BIN)/dvc pull $(ARGS)
+
+# The summary metrics (artifacts/eval/summary.json) always; params only where experiments differ;
+# no code or data hashes. KEEP adds columns by regex, e.g. make exp KEEP='train_vae\.lr'.
+EXP_KEEP := .*\.FID$$|.*\.R_precision_top3$$$(if $(KEEP),|$(KEEP))
+EXP_DROP := Created$$|Executor$$|(artifacts|data|models|pipelines|stages)/
+
+exp: setup  ## DVC experiments in a table that fits a terminal (README, "DVC views")
+	$(BIN)/dvc exp show --no-pager --only-changed --keep '$(EXP_KEEP)' --drop '$(EXP_DROP)' $(ARGS)
 
 bench: setup
 	$(BIN)/python benchmarks/extract_features.py
