@@ -3,9 +3,10 @@
 ``python -m stages.report [key=value ...]`` reads ``artifacts/eval/real/`` and
 ``artifacts/eval/<family>/`` for every family of the model registry and writes
 ``artifacts/eval/metrics.json`` (``{row: {metric: value}}``, the rows in registry order after
-``Real``), ``report.md`` (the paper-style table, also printed), ``fid_vs_time.png``, ``samples/``
-(every family's rendered sample animations) and ``report.html`` (the tables, the plot and the samples
-in one self-contained page that opens offline). Each file is replaced atomically.
+``Real``), ``summary.json`` (its headline figures, the DVC metrics file), ``report.md`` (the
+paper-style table, also printed), ``fid_vs_time.png``, ``samples/`` (every family's rendered sample
+animations) and ``report.html`` (the tables, the plot and the samples in one self-contained page that
+opens offline). Each file is replaced atomically.
 """
 
 from __future__ import annotations
@@ -24,6 +25,12 @@ from pipelines.report_html import report_html
 
 PARAMS = ("paths.artifacts",)
 SOURCES = ("real", *FAMILIES)
+
+#: The figures ``summary.json`` keeps, ``(row, metric)``: the evaluator's R-precision on real motions and
+#: the FID of each family's headline row. Few enough for one line of ``dvc metrics show`` and
+#: ``dvc exp show``; the whole table is ``metrics.json``.
+SUMMARY = (("Real", "R_precision_top3"), ("VAE", "FID"), ("MLD-DDIM50", "FID"), ("MotionLCM-1", "FID"),
+           ("MotionLCM-Control", "FID"), ("EMDM-10", "FID"), ("MotionDiffuse-DDIM10", "FID"))
 
 
 def _read_json(path: Path) -> Any:
@@ -59,6 +66,18 @@ def _write_html(eval_dir: Path, table: dict[str, dict[str, float]], meta: dict[s
     _replace(eval_dir / "report.html", lambda p: p.write_text(page, encoding="utf-8"))
 
 
+def summary(table: dict[str, dict[str, float]]) -> dict[str, dict[str, float]]:
+    """The ``SUMMARY`` figures of the merged table, shaped like it (``{row: {metric: value}}``).
+
+    A row or metric the table lacks (a family left out of the registry) is left out here too.
+    """
+    picked: dict[str, dict[str, float]] = {}
+    for row, metric in SUMMARY:
+        if metric in table.get(row, {}):
+            picked.setdefault(row, {})[metric] = table[row][metric]
+    return picked
+
+
 def run(params: dict[str, Any]) -> dict[str, dict[str, float]]:
     """Merge, write and print the report; returns the merged table."""
     eval_dir = artifacts_dir(params) / "eval"
@@ -68,6 +87,7 @@ def run(params: dict[str, Any]) -> dict[str, dict[str, float]]:
     samples = _read_samples(eval_dir)
     report = report_markdown(table, meta)
     _replace(eval_dir / "metrics.json", lambda p: p.write_text(json.dumps(table, indent=2) + "\n"))
+    _replace(eval_dir / "summary.json", lambda p: p.write_text(json.dumps(summary(table), indent=2) + "\n"))
     _replace(eval_dir / "report.md", lambda p: p.write_text(report, encoding="utf-8"))
     _replace(eval_dir / "fid_vs_time.png", lambda p: plot_fid_vs_time(table, p))
     with atomic_directory(eval_dir / "samples", owner="report") as tmp:
