@@ -16,6 +16,9 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
+#: The project checkout this module runs from (a temporary copy under ``dvc exp run --temp``).
+CHECKOUT = Path(__file__).resolve().parents[1]
+
 #: Columns of a history row that are bookkeeping, not curves to plot.
 NON_CURVE_KEYS = frozenset({"step", "epoch", "lr", "steps_per_s", "samples_per_s", "time_s"})
 
@@ -145,11 +148,16 @@ def plot_history_png(path: Path, history: Sequence[Mapping[str, Any]], title: st
     plt.close(fig)
 
 
-def default_wandb_dir(storage: str) -> str | None:
-    """W&B's ``dir``: ``$WANDB_DIR`` if set, else the local storage path (W&B adds ``wandb/`` under it).
+def default_wandb_dir(storage: str) -> str:
+    """W&B's ``dir`` (W&B adds ``wandb/`` under it): the same folder for every kind of ``dvc exp run``.
 
-    Runs land in ``<storage>/wandb/offline-run-*``; a remote storage URI gives None (W&B's default).
+    ``$WANDB_DIR`` if set; else a local Ray storage outside this checkout (a cluster's shared
+    ``ray.storage``, which every node can reach); else the DVC workspace, where ``wandb sync`` finds
+    the runs: ``$DVC_ROOT``, which DVC sets to the workspace also for ``dvc exp run --temp`` and
+    ``--queue`` (they run in a temporary copy that is then deleted), or else this checkout.
     """
     if os.environ.get("WANDB_DIR"):
         return os.environ["WANDB_DIR"]
-    return None if "://" in storage else storage
+    if "://" not in storage and not Path(storage).resolve().is_relative_to(CHECKOUT):
+        return storage
+    return os.environ.get("DVC_ROOT") or str(CHECKOUT)

@@ -47,7 +47,7 @@ from pipelines.runner import (
     run_training,
 )
 from pipelines.schedules import EMA, CosineWarmup
-from pipelines.tracking import default_wandb_dir
+from pipelines.tracking import CHECKOUT, default_wandb_dir
 
 # Ray workers cannot import this test module (pytest puts tests/ on sys.path only here):
 # ship its functions by value.
@@ -326,13 +326,18 @@ def test_gpu_decision_never_hangs() -> None:
         RayOptions.from_dict({"num_worker": 1})
 
 
-def test_wandb_runs_go_under_the_ray_storage(monkeypatch: pytest.MonkeyPatch) -> None:
-    """W&B adds ``wandb/`` to its dir: runs land in ``<storage>/wandb/``; $WANDB_DIR wins; URIs use W&B's own."""
+def test_wandb_runs_go_to_the_dvc_workspace(monkeypatch: pytest.MonkeyPatch) -> None:
+    """W&B adds ``wandb/`` to its dir: runs land in the workspace's ``wandb/`` (``$DVC_ROOT`` under
+    ``dvc exp run --temp``, whose checkout is deleted), a shared storage's, or ``$WANDB_DIR``."""
     monkeypatch.delenv("WANDB_DIR", raising=False)
-    assert default_wandb_dir("/repo/.ray_storage") == "/repo/.ray_storage"
-    assert default_wandb_dir("s3://bucket/runs") is None
+    monkeypatch.delenv("DVC_ROOT", raising=False)
+    assert default_wandb_dir(str(CHECKOUT / ".ray_storage")) == str(CHECKOUT)
+    assert default_wandb_dir("s3://bucket/runs") == str(CHECKOUT)
+    assert default_wandb_dir("/shared/ray_storage") == "/shared/ray_storage"
+    monkeypatch.setenv("DVC_ROOT", "/work/repo")  # as DVC sets it in .dvc/tmp/exps/<tmp>/ copies
+    assert default_wandb_dir(str(CHECKOUT / ".ray_storage")) == "/work/repo"
     monkeypatch.setenv("WANDB_DIR", "/elsewhere")
-    assert default_wandb_dir("/repo/.ray_storage") == "/elsewhere"
+    assert default_wandb_dir(str(CHECKOUT / ".ray_storage")) == "/elsewhere"
 
 
 def test_cosine_warmup_and_ema() -> None:
