@@ -92,6 +92,7 @@ def scratch(tmp_path: Path) -> tuple[Path, dict[str, str]]:
         "GIT_AUTHOR_NAME": "test", "GIT_AUTHOR_EMAIL": "test@example.com",
         "GIT_COMMITTER_NAME": "test", "GIT_COMMITTER_EMAIL": "test@example.com",
         "DVC_NO_ANALYTICS": "1",
+        "DVC_SITE_CACHE_DIR": str(tmp_path / "dvc-site-cache"),  # not /var/tmp/dvc
     }
     env.pop("DVC_ROOT", None)
     run(repo, env, "git", "init", "-q")
