@@ -22,6 +22,7 @@ import pytest
 import yaml
 
 from pipelines.identity import REPO_ROOT
+from stages import report as report_stage
 from stages.report import SUMMARY, summary
 
 DVC_YAML = yaml.safe_load((REPO_ROOT / "dvc.yaml").read_text())
@@ -69,6 +70,16 @@ def test_summary_keeps_the_headline_figures_of_the_table() -> None:
     assert summary(table) == {row: {metric: float(i)} for i, (row, metric) in enumerate(SUMMARY)}
     del table["VAE"]
     assert "VAE" not in summary(table) and len(summary(table)) == len(SUMMARY) - 1
+
+
+def test_report_writes_every_summary_figure_of_a_real_evaluation(tmp_path: Path) -> None:
+    """On a real tiny evaluation (tests/fixtures/eval), summary.json holds every SUMMARY figure,
+    equal to metrics.json's: the headline rows exist under these names."""
+    shutil.copytree(REPO_ROOT / "tests" / "fixtures" / "eval", tmp_path / "eval")
+    report_stage.run({"paths": {"artifacts": str(tmp_path)}})
+    table = json.loads((tmp_path / "eval" / "metrics.json").read_text())
+    written = json.loads((tmp_path / "eval" / "summary.json").read_text())
+    assert written == {row: {metric: table[row][metric]} for row, metric in SUMMARY}
 
 
 # --- the real commands in a scratch copy ------------------------------------------------------------
