@@ -70,6 +70,8 @@ SHARED_KEYS: dict[str, Callable[[Mapping[str, Any], str, str], Any]] = {
     "sample.emdm_guidance": partial(check_number, low=0.0),
     "sample.motiondiffuse_ddpm_items": lambda cfg, key, where: cfg[key] is None or check_number(
         cfg, key, where, low=1, integer=True),
+    "sample.motiondiffuse_ddpm_replications": lambda cfg, key, where: cfg[key] is None or check_number(
+        cfg, key, where, low=1, integer=True),
     "sample.motionlcm_guidance": partial(check_number, low=1.0),
     "sample.control_refine_steps": partial(check_number, low=0, integer=True),
     "sample.control_refine_lr": partial(check_number, low=0.0, low_open=True),

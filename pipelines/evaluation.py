@@ -35,7 +35,9 @@ same reference statistics as every row), Diversity (at most K - 1 pairs) and phy
 computed on those K motions. Its MultiModality is not measured (it would cost ``mm_repeats`` times
 the row itself), and its table row records ``eval_items``. FID from K samples is biased upward: such a
 row compares only with rows of the same K. K must hold one R-precision group; K >= the test set is
-no bound (the full protocol).
+no bound (the full protocol). Such a row may also carry ``eval_replications`` = R' (an int, or None
+for all): it is then evaluated in the first R' replications only, its metrics averaged over those,
+with no ``_ci`` when R' = 1, and its table row records ``eval_replications``.
 """
 
 from __future__ import annotations
@@ -311,6 +313,17 @@ def eval_items(gen: Generator, n: int, cfg: EvalConfig) -> int | None:
     return None if k >= n else k
 
 
+def eval_replications(gen: Generator, cfg: EvalConfig) -> int:
+    """How many of the replications a generator is evaluated in: its ``eval_replications`` (module
+    docstring), at most ``cfg.replications``; all of them without the attribute or with None."""
+    r = getattr(gen, "eval_replications", None)
+    if r is None:
+        return cfg.replications
+    if isinstance(r, bool) or not isinstance(r, int) or r < 1:
+        raise ValueError(f"{gen.name}: eval_replications must be an integer >= 1, got {r!r}")
+    return min(r, cfg.replications)
+
+
 def subset_reference(ref: Reference, k: int) -> Reference:
     """The first ``k`` captions of a replication's draw (a random subset: the draw is shuffled) with their
     caption embeddings, and the same FID reference statistics."""
@@ -339,6 +352,8 @@ def replicate(ref: Reference, r: int, embedder: MotionEmbedder, skeleton: Skelet
         result[rec.name] = _row_metrics(rec.name, raw, ref, embedder, skeleton, cfg, row_rng(cfg, r, rec.name))
         result[rec.name]["MPJPE_mm"] = mpjpe_mm(d.real, raw, d.lengths, skeleton.joints_num)
     for gen in generators:
+        if r >= eval_replications(gen, cfg):
+            continue
         rng = row_rng(cfg, r, gen.name)
         k = eval_items(gen, len(d.lengths), cfg)
         g_ref, g_cfg = (ref, cfg) if k is None else (subset_reference(ref, k),
@@ -361,14 +376,17 @@ def _hint_of(gen: Generator, d: Draw, cfg: EvalConfig, r: int, skeleton: Skeleto
 
 
 def aggregate(per_replication: Sequence[Mapping[str, Mapping[str, float]]]) -> dict[str, dict[str, float]]:
-    """{row: {metric: mean, metric_ci: 1.96 std / sqrt(R)}} over replications."""
+    """{row: {metric: mean, metric_ci: 1.96 std / sqrt(R)}} over the replications that hold the row (no
+    ``_ci`` for a row in one replication only: ``eval_replications``)."""
     table = {}
-    for row in per_replication[0]:
+    for row in dict.fromkeys(name for rep in per_replication for name in rep):
+        reps = [rep[row] for rep in per_replication if row in rep]
         table[row] = {}
-        for key in per_replication[0][row]:
-            mean, ci = M.mean_and_ci(np.array([rep[row][key] for rep in per_replication]))
+        for key in reps[0]:
+            mean, ci = M.mean_and_ci(np.array([rep[key] for rep in reps]))
             table[row][key] = float(mean)
-            table[row][f"{key}_ci"] = float(ci)
+            if len(reps) > 1:
+                table[row][f"{key}_ci"] = float(ci)
     return table
 
 
@@ -387,4 +405,6 @@ def evaluate(refs: Sequence[Reference], items: Sequence[StoredItem], mean: np.nd
         k = eval_items(gen, len(refs[0].draw.lengths), cfg) if refs else None
         if k is not None:
             table[gen.name]["eval_items"] = k
+        if eval_replications(gen, cfg) < cfg.replications:
+            table[gen.name]["eval_replications"] = eval_replications(gen, cfg)
     return table

@@ -65,7 +65,8 @@ def load_motiondiffuse(out_dir: Path, use_ema: bool = True) -> tuple[MotionDiffu
 class MotionDiffuseRow:
     """MotionDiffuse: DDPM over all T steps (``method="ddpm"``) or DDIM with ``steps`` (eta 0, trailing grid).
 
-    ``eval_items``: None, or the number of each evaluation draw's captions the row answers (a bound for
+    ``eval_items``: None, or the number of each evaluation draw's captions the row answers, and
+    ``eval_replications``: None (all), or how many of the replications it is evaluated in (bounds for
     slow samplers, :mod:`pipelines.evaluation`); ``note`` says so in words (nothing reads it: the
     :class:`~models.generator.Generator` protocol has no notes).
     """
@@ -73,7 +74,8 @@ class MotionDiffuseRow:
     stochastic = True
 
     def __init__(self, name: str, model: MotionDiffuse, schedule: NoiseSchedule, method: SamplingMethod = "ddpm",
-                 steps: int | None = None, eval_items: int | None = None) -> None:
+                 steps: int | None = None, eval_items: int | None = None,
+                 eval_replications: int | None = None) -> None:
         if method == "ddpm":
             if steps not in (None, schedule.num_steps):
                 raise ValueError(f"{name}: DDPM runs all {schedule.num_steps} steps, got steps={steps}")
@@ -85,9 +87,10 @@ class MotionDiffuseRow:
             raise ValueError(f"{name}: unknown method {method!r}: ddpm | ddim")
         self.name, self.model, self.schedule = name, model.eval(), schedule
         self.method, self.steps, self.nfe = method, int(steps), int(steps)
-        self.eval_items = eval_items
+        self.eval_items, self.eval_replications = eval_items, eval_replications
+        reps = "each replication" if eval_replications is None else f"the first {eval_replications} replication(s)"
         self.note = ("" if eval_items is None else
-                     f"evaluated on the first {eval_items} captions of each replication's draw, no MultiModality")
+                     f"evaluated on the first {eval_items} captions of {reps}' draws, no MultiModality")
 
     @torch.inference_mode()
     def sample(self, text: TextBatch, lengths: np.ndarray, seed: int) -> np.ndarray:
@@ -108,13 +111,17 @@ def _load(ctx: EvalContext) -> tuple[MotionDiffuse, NoiseSchedule]:
 
 
 def motiondiffuse_rows(ctx: EvalContext) -> list[Generator]:
-    """``MotionDiffuse-<T>`` (DDPM, bounded by ``sample.motiondiffuse_ddpm_items``) and ``MotionDiffuse-DDIM10``
-    (one load)."""
+    """``MotionDiffuse-<T>`` (DDPM, bounded by ``sample.motiondiffuse_ddpm_items`` and
+    ``sample.motiondiffuse_ddpm_replications``) and ``MotionDiffuse-DDIM10`` (one load)."""
     model, schedule = _load(ctx)
-    items = ctx.params["sample"]["motiondiffuse_ddpm_items"]
-    if items is not None and (isinstance(items, bool) or not isinstance(items, int) or items < 1):
-        raise ValueError(f"sample.motiondiffuse_ddpm_items: expected null or an integer >= 1, got {items!r}")
-    return [MotionDiffuseRow(f"MotionDiffuse-{schedule.num_steps}", model, schedule, "ddpm", eval_items=items),
+    bounds = {}
+    for key in ("motiondiffuse_ddpm_items", "motiondiffuse_ddpm_replications"):
+        value = bounds[key] = ctx.params["sample"][key]
+        if value is not None and (isinstance(value, bool) or not isinstance(value, int) or value < 1):
+            raise ValueError(f"sample.{key}: expected null or an integer >= 1, got {value!r}")
+    return [MotionDiffuseRow(f"MotionDiffuse-{schedule.num_steps}", model, schedule, "ddpm",
+                             eval_items=bounds["motiondiffuse_ddpm_items"],
+                             eval_replications=bounds["motiondiffuse_ddpm_replications"]),
             MotionDiffuseRow(f"MotionDiffuse-DDIM{DDIM_ROW_STEPS}", model, schedule, "ddim", DDIM_ROW_STEPS)]
 
 

@@ -50,8 +50,12 @@ def _cell(row: dict[str, float], key: str, decimals: int) -> str:
 
 
 def _name(name: str, row: dict[str, float]) -> str:
-    """The row's name, marked when it was evaluated on a subset of each draw (``eval_items``)."""
-    return f"{name} (†{int(row['eval_items'])})" if "eval_items" in row else name
+    """The row's name, marked when it was evaluated on a subset of each draw (``eval_items``) and of the
+    replications (``eval_replications``)."""
+    if "eval_items" not in row:
+        return name
+    reps = f", {int(row['eval_replications'])} rep." if "eval_replications" in row else ""
+    return f"{name} (†{int(row['eval_items'])}{reps})"
 
 
 @dataclass(frozen=True)
@@ -93,6 +97,8 @@ def report_notes(table: dict[str, dict[str, float]]) -> list[str]:
         notes.append("(†K): evaluated on the first K captions of each replication's draw, not the whole test set "
                      "(too slow): its FID (biased upward by few samples) and Diversity compare only with rows of "
                      "the same K; no MultiModality.")
+    if any("eval_replications" in row for row in table.values()):
+        notes.append("(†K, R rep.): the same, in the first R replications only (no ± when R = 1).")
     return notes
 
 

@@ -59,6 +59,7 @@ def params(small_store) -> dict[str, Any]:
     params = copy.deepcopy(small_store)
     params["train_motiondiffuse"] = section()
     params["sample"]["motiondiffuse_ddpm_items"] = 32
+    params["sample"]["motiondiffuse_ddpm_replications"] = 1
     params["ray"].update(num_workers=1, cpus_per_worker=1, checkpoint_every=3, max_failures=0)
     return params
 
@@ -217,10 +218,13 @@ class _Noisy:
 
     stochastic, nfe = True, 1
 
-    def __init__(self, name: str, codes: np.ndarray, eval_items: int | None = None) -> None:
+    def __init__(self, name: str, codes: np.ndarray, eval_items: int | None = None,
+                 eval_replications: int | None = None) -> None:
         self.name, self.codes, self.calls = name, codes, []
         if eval_items is not None:
             self.eval_items = eval_items
+        if eval_replications is not None:
+            self.eval_replications = eval_replications
 
     def sample(self, text: TextBatch, lengths: np.ndarray, seed: int) -> np.ndarray:
         self.calls.append(len(text))
@@ -263,6 +267,30 @@ def test_eval_items_bounds_one_row_and_leaves_the_others_alone() -> None:
                                         [_Noisy("big", codes, eval_items=500)])["big"]  # no bound: full protocol
     with pytest.raises(ValueError, match="eval_items must be an integer >= group_size"):
         evaluate(refs, items, mean, std, embedder, HUMANML3D, cfg, [_Noisy("small", codes, eval_items=8)])
+
+
+def test_eval_replications_evaluates_a_row_in_the_first_replications_only() -> None:
+    codes, items = _world()
+    cfg = EvalConfig(replications=3, diversity_times=50, mm_texts=10, mm_repeats=12, mm_times=10, timing_sentences=2)
+    embedder = _StubEmbedder(codes)
+    refs = references(items, embedder, cfg)
+    mean, std = np.zeros(D, np.float32), np.ones(D, np.float32)
+    three = evaluate(refs, items, mean, std, embedder, HUMANML3D, cfg, [_Noisy("row", codes, eval_items=32)])["row"]
+    one_gen, full = _Noisy("row", codes, eval_items=32, eval_replications=1), _Noisy("full", codes)
+    table = evaluate(refs, items, mean, std, embedder, HUMANML3D, cfg, [one_gen, full])
+    assert one_gen.calls == [32, 1, 1, 1]  # replication 0 only, then warm-up and timing
+    one = table["row"]
+    assert one["eval_replications"] == 1 and one["eval_items"] == 32
+    assert not any(key.endswith("_ci") and key[:-3] in one for key in one)  # one replication: no CI
+    assert "FID_ci" in three and three["FID"] != one["FID"]  # the mean of three replications, not of one
+    assert "eval_replications" not in table["full"] and "R_precision_top3_ci" in table["full"]
+    two = evaluate(refs, items, mean, std, embedder, HUMANML3D, cfg,
+                   [_Noisy("row", codes, eval_items=32, eval_replications=2)])["row"]
+    assert two["eval_replications"] == 2 and "FID_ci" in two
+    assert "eval_replications" not in evaluate(refs, items, mean, std, embedder, HUMANML3D, cfg, [
+        _Noisy("row", codes, eval_items=32, eval_replications=5)])["row"]  # more than there are: all of them
+    with pytest.raises(ValueError, match="eval_replications must be an integer >= 1"):
+        evaluate(refs, items, mean, std, embedder, HUMANML3D, cfg, [_Noisy("row", codes, eval_replications=0)])
 
 
 # --------------------------------------------------------------------------------------------------
@@ -375,7 +403,8 @@ def test_stage_writes_outputs_and_the_rows_sample(params, tmp_path: Path, monkey
 
     ctx = EvalContext(local, tmp_path / "artifacts", Path(local["features"]["out"]))
     ddpm, ddim = motiondiffuse_rows(ctx)
-    assert (ddpm.name, ddpm.nfe, ddpm.eval_items) == ("MotionDiffuse-100", 100, 32) and "first 32" in ddpm.note
+    assert (ddpm.name, ddpm.nfe, ddpm.eval_items, ddpm.eval_replications) == ("MotionDiffuse-100", 100, 32, 1)
+    assert "first 32 captions of the first 1 replication(s)" in ddpm.note
     assert (ddim.name, ddim.nfe, ddim.eval_items) == ("MotionDiffuse-DDIM10", 10, None)
     text = ctx.store.encode_prompts(["a person walks", "a person jumps"])
     x = ddim.sample(text, np.array([20, 12]), 0)
@@ -391,7 +420,8 @@ def test_stage_writes_outputs_and_the_rows_sample(params, tmp_path: Path, monkey
     # stages.generate --part / --segment end to end (the registry entry as it will read)
     monkeypatch.setitem(FAMILIES, "motiondiffuse", ModelFamily(
         "motiondiffuse", "pipelines.motiondiffuse_family", "motiondiffuse_rows",
-        train_stages=("train_motiondiffuse",), params=("sample.motiondiffuse_ddpm_items",),
+        train_stages=("train_motiondiffuse",),
+        params=("sample.motiondiffuse_ddpm_items", "sample.motiondiffuse_ddpm_replications"),
         generator="motiondiffuse_generator"))
     [parts] = generate.generate(local, "motiondiffuse", [], [24], tmp_path / "parts.npy", steps=3,
                                 parts=[("upper", "a person waves"), ("lower", "a person walks")])
