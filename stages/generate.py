@@ -2,13 +2,28 @@
 
     python -m stages.generate --model mld --text "a person walks forward then sits down" \\
         --length 120 --out walk.gif [--steps 50] [--guidance 7.5] [--seed 0] [key=value ...]
+    python -m stages.generate --model mld --prompts prompts.txt --out out/ --format bvh
 
     python -m stages.generate --model motionlcm-control --text "a person walks" \\
         --trajectory circle [--size 1.5] [--refine] --out circle.gif
 
-``--text`` may be repeated (one motion per text; ``--out`` then gets ``_<k>`` suffixes). The
-output format follows the extension: ``.gif``/``.mp4`` animation, ``.png`` frame strip, ``.npy``
-global joints (T, J, 3) in metres. Models are read from ``paths.artifacts`` (``dvc repro`` first).
+Prompts. ``--text`` (repeatable) and ``--prompts FILE`` (one prompt per line, ``TEXT`` or
+``TEXT | LENGTH``; blank lines and lines starting with ``#`` are skipped; a prompt without a
+length gets ``--length``) are generated together: the models and the text encoder are loaded once
+and the prompts sampled in batches of :data:`BATCH` (batch ``i`` with seed ``--seed + i``).
+
+Outputs. ``--out`` with a format's extension is one file (one prompt); otherwise it is a
+directory that receives ``NN_<words>.<format>`` per prompt, ``NN`` its position from 00 (the
+``--text`` prompts first, then the file's), ``<words>`` the start of its text, and the format
+``--format`` (default gif). Formats: ``.gif``/``.mp4`` animation, ``.png`` frame strip, ``.npy``
+global joints (T, J, 3) in metres, ``.bvh`` the skeleton's joint rotations (:mod:`data.bvh`).
+Models are read from ``paths.artifacts`` (``dvc repro`` first).
+
+Everything that can be checked without a model is checked before loading one (one line, exit
+status 1): the model name, the prompts, ``--steps`` (at least 1 and what the family samples
+with; the trained step counts are read from params, and the family checks the loaded model
+again), each length against the feature store's training motions (its shortest to its longest),
+the output names and formats (MP4 needs ffmpeg on PATH).
 
 ``--trajectory`` (controlled models only): a pelvis path, ``circle``/``line``/``zigzag``
 (:mod:`data.trajectories`, ``--size`` metres) or a ``.npy`` of (length, 3) pelvis positions in
@@ -32,19 +47,28 @@ A:B=TEXT`` (repeatable): frames [A, B) follow TEXT; segments may overlap and mus
 from __future__ import annotations
 
 import argparse
+import os
+import re
+import shutil
 import sys
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import dataclass
+from multiprocessing import get_context
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+import pyarrow.parquet as pq
 
+from data.bvh import write_bvh
 from data.control import CONTROL_JOINTS
 from data.render import render_animation, render_strip
 from data.skeleton import get_skeleton
 from data.trajectories import SHAPES, load_trajectory, make_trajectory
 from models.generator import ControlledGenerator, Hint
 from models.motiondiffuse import PART_UNIONS, REST
+from models.motionlcm import TIMESTEPS as LCM_STEPS
 from pipelines.cli import artifacts_dir, repo_path
 from pipelines.config import load_params
 from pipelines.feature_store import FeatureStore
@@ -56,6 +80,13 @@ MODELS = sorted(name for name, entry in FAMILIES.items() if entry.generator is n
 COMPOSABLE = "motiondiffuse"
 #: The atomic body parts every named part is a union of.
 PART_ATOMS = frozenset(atom for atoms in PART_UNIONS.values() for atom in atoms)
+#: Output formats, by file extension (module docstring).
+FORMATS = ("gif", "mp4", "png", "npy", "bvh")
+DEFAULT_FORMAT = "gif"
+#: Suffixes of the formats drawn with matplotlib (seconds per motion; written in parallel).
+DRAWN = (".gif", ".mp4", ".png")
+#: Prompts sampled together: bounds the memory of a long prompt file.
+BATCH = 32
 
 
 def parse_parts(specs: Sequence[str]) -> list[tuple[str, str]]:
@@ -112,18 +143,149 @@ def parse_segments(specs: Sequence[str], length: int) -> list[tuple[int, int, st
     return segments
 
 
+@dataclass(frozen=True)
+class Prompt:
+    """One motion to generate: its text, its length in frames and where it was given (for messages)."""
+
+    text: str
+    length: int
+    source: str
+
+
+def parse_prompt_file(path: Path, default_length: int) -> list[Prompt]:
+    """``--prompts`` file: ``TEXT`` or ``TEXT | LENGTH`` per line; blank and ``#`` lines skipped.
+
+    ValueError naming the file and line of a bad one (an empty text, a length that is not an integer).
+    """
+    try:
+        lines = path.read_text(encoding="utf-8").splitlines()
+    except FileNotFoundError:
+        raise FileNotFoundError(f"--prompts {path}: no such file") from None
+    except (OSError, UnicodeDecodeError) as err:
+        raise ValueError(f"--prompts {path}: cannot read ({err})") from err
+    prompts = []
+    for number, line in enumerate(lines, 1):
+        line = line.strip()
+        if not line or line.startswith("#"):
+            continue
+        where = f"{path}:{number}"
+        text, bar, length = line.rpartition("|") if "|" in line else (line, "", "")
+        text, length = text.strip(), length.strip()
+        if not text:
+            raise ValueError(f"{where}: no text before '|' (expected TEXT or TEXT | LENGTH)")
+        if bar and not length.isdigit():
+            raise ValueError(f"{where}: length {length!r} is not a whole number of frames (expected TEXT | LENGTH)")
+        prompts.append(Prompt(text, int(length) if bar else default_length, where))
+    if not prompts:
+        raise ValueError(f"--prompts {path}: no prompts (every line is blank or a # comment)")
+    return prompts
+
+
+def length_range(store: FeatureStore) -> tuple[int, int]:
+    """The shortest and longest motion of the store's training split, in frames (the lengths the models saw).
+
+    Read from the Parquet column statistics (no motion is loaded), or the column when they are missing.
+    """
+    path = store.path / "train.parquet"
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: no training split in the feature store (run `dvc repro extract_features`)")
+    meta = pq.read_metadata(path)
+    column = meta.schema.names.index("length")
+    stats = [meta.row_group(g).column(column).statistics for g in range(meta.num_row_groups)]
+    if stats and all(s is not None and s.has_min_max for s in stats):
+        return min(int(s.min) for s in stats), max(int(s.max) for s in stats)
+    lengths = pq.read_table(path, columns=["length"]).column("length").to_numpy()
+    if len(lengths) == 0:
+        raise ValueError(f"{path}: the training split is empty")
+    return int(lengths.min()), int(lengths.max())
+
+
+def check_dataset_lengths(params: dict[str, Any], prompts: Sequence[Prompt]) -> None:
+    """Every prompt's length within the feature store's training motions (:func:`length_range`); ValueError
+    naming the first one outside."""
+    store = FeatureStore(repo_path(params, "features.out"))
+    low, high = length_range(store)
+    for prompt in prompts:
+        if not low <= prompt.length <= high:
+            raise ValueError(f"{prompt.source}: length {prompt.length} is outside {low}..{high} frames, the lengths "
+                             f"of the training motions ({store.path})")
+
+
+def allowed_steps(model: str, params: dict[str, Any]) -> tuple[Callable[[int], bool], str]:
+    """What ``--steps`` family ``model`` samples with: a test and its description (the trained step counts
+    from params; the family checks the loaded model again)."""
+    if model == "motionlcm":
+        return (lambda n: n in LCM_STEPS), f"MotionLCM samples with {', '.join(map(str, sorted(LCM_STEPS)))} steps"
+    if model == "motionlcm-control":
+        return (lambda n: n == 1), "the ControlNet samples with one MotionLCM step"
+    if model == "emdm":
+        trained = params["train_emdm"]["num_steps"]
+        return (lambda n: n == trained), f"EMDM samples with the {trained} steps it was trained with " \
+                                         "(train_emdm.num_steps)"
+    stage = {"mld": "train_mld", "motiondiffuse": "train_motiondiffuse"}[model]
+    total = params[stage]["num_train_timesteps"]
+    return (lambda n: 1 <= n <= total), f"1..{total} ({stage}.num_train_timesteps)"
+
+
+def check_steps(model: str, steps: int | None, params: dict[str, Any]) -> None:
+    if steps is None:
+        return
+    if steps < 1:
+        raise ValueError(f"--steps {steps}: must be at least 1")
+    allowed, description = allowed_steps(model, params)
+    if not allowed(steps):
+        raise ValueError(f"--steps {steps}: {description}")
+
+
+def check_format(fmt: str, where: str) -> None:
+    """ValueError when ``fmt`` is unknown or its encoder is missing (MP4 needs ffmpeg)."""
+    if fmt not in FORMATS:
+        raise ValueError(f"{where}: unknown format {fmt!r}; use {', '.join(FORMATS)}")
+    if fmt == "mp4" and shutil.which("ffmpeg") is None:
+        raise ValueError(f"{where}: writing MP4 needs ffmpeg on PATH, which is not installed; write a .gif instead")
+
+
+def output_paths(out: Path, fmt: str | None, prompts: Sequence[Prompt]) -> list[Path]:
+    """One path per prompt: ``out`` itself when it names a file, else ``out/NN_<words>.<format>`` (module docstring).
+
+    Checks the format (:func:`check_format`); creates nothing.
+    """
+    suffix = out.suffix.lower().lstrip(".")
+    if suffix and not out.is_dir():
+        check_format(suffix, f"--out {out}")
+        if fmt is not None and fmt != suffix:
+            raise ValueError(f"--out {out} and --format {fmt} disagree; give one of them")
+        if len(prompts) > 1:
+            raise ValueError(f"--out {out}: {len(prompts)} prompts are written into a directory; give a directory "
+                             "(and --format)")
+        return [out]
+    fmt = fmt or DEFAULT_FORMAT
+    check_format(fmt, f"--format {fmt}")
+    if out.exists() and not out.is_dir():
+        raise ValueError(f"--out {out}: exists and is not a directory")
+    width = max(2, len(str(len(prompts) - 1)))
+    return [out / f"{k:0{width}d}_{slug(p.text)}.{fmt}" for k, p in enumerate(prompts)]
+
+
+def slug(text: str, limit: int = 40) -> str:
+    """The start of a prompt as a file-name part: lower-case words joined by ``_``."""
+    words = re.findall(r"[a-z0-9]+", text.lower())
+    return "_".join(words)[:limit].rstrip("_") or "motion"
+
+
 def write_motion(joints: np.ndarray, path: Path, caption: str, skeleton_name: str,
                  target_path: np.ndarray | None = None) -> Path:
-    """Save one motion's joints by the path's extension (``target_path``: drawn on the floor)."""
+    """Save one motion's joints in the format of the path's extension (``target_path``: drawn on the floor)."""
     skeleton = get_skeleton(skeleton_name)
-    if path.suffix == ".npy":
+    fmt = path.suffix.lower().lstrip(".")
+    if fmt == "npy":
         np.save(path, joints.astype(np.float32))
         return path
-    if path.suffix == ".png":
+    if fmt == "bvh":
+        return write_bvh(joints, skeleton, path, skeleton.fps)
+    if fmt == "png":
         return render_strip(joints, path, caption, skeleton, target_path=target_path)
-    if path.suffix in (".gif", ".mp4"):
-        return render_animation(joints, path, caption, skeleton, target_path=target_path)
-    raise ValueError(f"--out {path}: unknown extension (use .gif, .mp4, .png or .npy)")
+    return render_animation(joints, path, caption, skeleton, target_path=target_path)
 
 
 def pelvis_path(trajectory: str, length: int, store: FeatureStore, size: float | None = None) -> np.ndarray:
@@ -163,75 +325,174 @@ def generate_composed(ctx: EvalContext, generator: Any, parts: Sequence[tuple[st
     return motion, " | ".join(f"{a}-{b}: {t}" for a, b, t in segments)
 
 
-def generate(params: dict[str, Any], model: str, texts: Sequence[str], lengths: Sequence[int], out: Path,
-             seed: int = 0, steps: int | None = None, guidance: float | None = None, trajectory: str | None = None,
-             size: float | None = None, refine: bool = False, parts: Sequence[tuple[str, str]] = (),
-             segments: Sequence[tuple[int, int, str]] = ()) -> list[Path]:
-    """Sample ``texts`` with the registry's ``model`` and write one file per text; returns the paths.
+@dataclass(frozen=True)
+class Request:
+    """A checked ``stages.generate`` call (:func:`plan`): what to sample and where each motion goes."""
 
-    With ``parts`` or ``segments`` (``--model motiondiffuse``; ``texts`` empty, one length) one composed motion.
+    model: str
+    prompts: list[Prompt]
+    paths: list[Path]
+    options: GenerateOptions
+    seed: int = 0
+    trajectory: str | None = None
+    size: float | None = None
+    parts: Sequence[tuple[str, str]] = ()
+    segments: Sequence[tuple[int, int, str]] = ()
+
+
+def plan(params: dict[str, Any], model: str, prompts: Sequence[Prompt], out: Path, fmt: str | None = None,
+         seed: int = 0, steps: int | None = None, guidance: float | None = None, trajectory: str | None = None,
+         size: float | None = None, refine: bool = False, parts: Sequence[tuple[str, str]] = (),
+         segments: Sequence[tuple[int, int, str]] = ()) -> Request:
+    """Check the request's options without a model (module docstring); ValueError on the first problem.
+
+    With ``parts`` or ``segments`` (``--model motiondiffuse``) ``prompts`` holds the one motion's length.
+    The lengths are checked against the dataset by :func:`check_dataset_lengths` (the command does).
     """
-    if steps is not None and steps < 1:
-        raise ValueError(f"--steps {steps}: must be at least 1")
-    if (parts or segments) and (texts or len(lengths) != 1 or trajectory is not None or refine):
-        raise ValueError("--part/--segment make one motion: no --text, --trajectory or --refine with them")
+    entry = FAMILIES.get(model)
+    if entry is None or entry.generator is None:
+        with_generator = ", ".join(sorted(name for name, e in FAMILIES.items() if e.generator is not None))
+        what = f"model family {model!r} has no generator (it is evaluated only)" if entry else \
+            f"unknown model family {model!r}"
+        raise ValueError(f"--model: {what}; choose one of {with_generator}")
+    if not prompts:
+        raise ValueError("no prompt: give --text, --prompts or (motiondiffuse) --part / --segment")
+    if (parts or segments) and (len(prompts) != 1 or trajectory is not None or refine):
+        raise ValueError("--part/--segment make one motion: no --text, --prompts, --trajectory or --refine with them")
+    for prompt in prompts:
+        if prompt.length < 1:
+            raise ValueError(f"{prompt.source}: length {prompt.length} must be at least 1 frame")
+    check_steps(model, steps, params)
+    if guidance is not None and guidance < 0:
+        raise ValueError(f"--guidance {guidance}: must be at least 0")
+    paths = output_paths(out, fmt, prompts)
+    return Request(model, list(prompts), paths, GenerateOptions(steps=steps, guidance=guidance, refine=refine), seed,
+                   trajectory, size, parts, segments)
+
+
+def sample_all(ctx: EvalContext, generator: Any, request: Request,
+               target: np.ndarray | None) -> list[np.ndarray]:
+    """Every prompt's joints, sampled in batches of :data:`BATCH` (batch ``i`` with seed ``seed + i``)."""
+    joints = []
+    for first in range(0, len(request.prompts), BATCH):
+        batch = request.prompts[first : first + BATCH]
+        text = ctx.store.encode_prompts([p.text for p in batch])
+        lengths = np.array([p.length for p in batch])
+        seed = request.seed + first // BATCH
+        if target is not None:
+            hint = pelvis_hint(target, len(batch), ctx.store.joints_num)
+            motions = generator.sample(text, lengths, seed, hint=hint)
+        else:
+            motions = generator.sample(text, lengths, seed)
+        joints += ctx.store.to_joints(motions, lengths)
+    return joints
+
+
+def run_request(params: dict[str, Any], request: Request) -> list[Path]:
+    """Load the model once, sample every prompt and write one file per prompt; returns the paths."""
     ctx = EvalContext(params, artifacts_dir(params), repo_path(params, "features.out"))
-    generator = family(model).build_generator(ctx, GenerateOptions(steps=steps, guidance=guidance, refine=refine))
-    if parts or segments:
-        motion, caption = generate_composed(ctx, generator, parts, segments, int(lengths[0]), seed)
-        [joints] = ctx.store.to_joints(motion, lengths)
-        return [write_motion(joints, out, caption, params["data"]["skeleton"])]
-    lengths = np.asarray(lengths)
-    text = ctx.store.encode_prompts(texts)
-    target = None
+    skeleton = params["data"]["skeleton"]
+    longest = max(p.length for p in request.prompts)
+    target = None if request.trajectory is None else pelvis_path(request.trajectory, longest, ctx.store,
+                                                                 request.size)
+    generator = family(request.model).build_generator(ctx, request.options)
+    if request.parts or request.segments:
+        motion, caption = generate_composed(ctx, generator, request.parts, request.segments, longest, request.seed)
+        [joints] = ctx.store.to_joints(motion, [longest])
+        request.paths[0].parent.mkdir(parents=True, exist_ok=True)
+        return [write_motion(joints, request.paths[0], caption, skeleton)]
     if isinstance(generator, ControlledGenerator):
-        if trajectory is None:
-            raise ValueError(f"--model {model} follows a trajectory: pass --trajectory ({', '.join(SHAPES)} or a .npy)")
-        target = pelvis_path(trajectory, int(lengths.max()), ctx.store, size)
-        motions = generator.sample(text, lengths, seed, hint=pelvis_hint(target, len(texts), ctx.store.joints_num))
-    elif trajectory is not None or refine:
-        raise ValueError(f"--trajectory/--refine need a controlled model (motionlcm-control), not {model!r}")
-    else:
-        motions = generator.sample(text, lengths, seed)
-    paths = [out] if len(texts) == 1 else [out.with_name(f"{out.stem}_{k}{out.suffix}") for k in range(len(texts))]
-    written = []
-    for joints, path, caption in zip(ctx.store.to_joints(motions, lengths), paths, texts, strict=True):
+        if target is None:
+            raise ValueError(f"--model {request.model} follows a trajectory: pass --trajectory ({', '.join(SHAPES)} "
+                             "or a .npy)")
+    elif target is not None or request.options.refine:
+        raise ValueError(f"--trajectory/--refine need a controlled model (motionlcm-control), not {request.model!r}")
+    all_joints = sample_all(ctx, generator, request, target)
+    for folder in {path.parent for path in request.paths}:
+        folder.mkdir(parents=True, exist_ok=True)
+    jobs = []
+    for joints, path, prompt in zip(all_joints, request.paths, request.prompts, strict=True):
         if target is not None:
             error = np.linalg.norm(joints[:, CONTROL_JOINTS["pelvis"]] - target[: len(joints)], axis=-1).mean()
             print(f"{path.name}: pelvis {error:.3f} m from the trajectory on average")
-        written.append(write_motion(joints, path, caption, params["data"]["skeleton"], target))
-    return written
+        jobs.append((joints, path, prompt.text, skeleton, target))
+    return write_all(jobs)
+
+
+def _write_job(job: tuple[np.ndarray, Path, str, str, np.ndarray | None]) -> Path:
+    return write_motion(*job)
+
+
+def write_all(jobs: Sequence[tuple[np.ndarray, Path, str, str, np.ndarray | None]]) -> list[Path]:
+    """:func:`write_motion` for every job, in order; drawn formats (seconds per motion) on one process per core."""
+    workers = min(len(jobs), len(os.sched_getaffinity(0)))
+    if workers < 2 or not any(job[1].suffix in DRAWN for job in jobs):
+        return [_write_job(job) for job in jobs]
+    with ProcessPoolExecutor(max_workers=workers, mp_context=get_context("fork")) as pool:
+        return list(pool.map(_write_job, jobs))
+
+
+def generate(params: dict[str, Any], model: str, texts: Sequence[str], lengths: Sequence[int], out: Path,
+             seed: int = 0, steps: int | None = None, guidance: float | None = None, trajectory: str | None = None,
+             size: float | None = None, refine: bool = False, parts: Sequence[tuple[str, str]] = (),
+             segments: Sequence[tuple[int, int, str]] = (), fmt: str | None = None) -> list[Path]:
+    """Sample ``texts`` (with ``lengths``) with the registry's ``model`` and write one file per text.
+
+    With ``parts`` or ``segments`` (``--model motiondiffuse``; ``texts`` empty, one length) one composed motion.
+    The lengths are not checked against the dataset (tiny test models sample any length); the command does.
+    """
+    prompts = [Prompt(text, int(n), f"--text {text!r}") for text, n in zip(texts, lengths, strict=True)] \
+        if texts else [Prompt("", int(lengths[0]), "--length")]
+    return run_request(params, plan(params, model, prompts, out, fmt, seed, steps, guidance, trajectory, size, refine,
+                                    parts, segments))
 
 
 def check_composition(parser: argparse.ArgumentParser,
                       args: argparse.Namespace) -> tuple[list[tuple[str, str]], list[tuple[int, int, str]]]:
     """``--text`` / ``--part`` / ``--segment`` checked together (``parser.error``: one line, exit status 2)."""
+    prompts = getattr(args, "prompts", None)  # absent from a Namespace built without --prompts
     if not (args.part or args.segment):
-        if not args.text:
-            parser.error("the following arguments are required: --text (or --part / --segment)")
+        if not args.text and prompts is None:
+            parser.error("the following arguments are required: --text or --prompts (or --part / --segment)")
         return [], []
     if args.model != COMPOSABLE:
         parser.error(f"--part/--segment: only --model {COMPOSABLE} composes prompts, not {args.model!r}")
     if args.part and args.segment:
         parser.error("--part and --segment: use one kind of composition")
-    if args.text or args.trajectory is not None or args.refine:
-        parser.error("--part/--segment make one motion from their own texts: no --text, --trajectory or --refine")
+    if args.text or prompts is not None or args.trajectory is not None or args.refine:
+        parser.error("--part/--segment make one motion from their own texts: no --text, --prompts, --trajectory or "
+                     "--refine")
     try:
         return (parse_parts(args.part), []) if args.part else ([], parse_segments(args.segment, args.length))
     except ValueError as err:
         parser.error(str(err))
 
 
-def main(argv: Sequence[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(description="Text to motion with a trained motionforge model.")
-    parser.add_argument("--model", default="mld", choices=MODELS, help="model family (pipelines/registry.py)")
-    parser.add_argument("--text", action="append", default=[], help="prompt (repeatable; required unless --part or "
-                        "--segment)")
-    parser.add_argument("--length", type=int, default=120, help="frames at 20 fps (4..196)")
-    parser.add_argument("--out", type=Path, required=True)
-    parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--steps", type=int, default=None, help="sampling steps (model default if omitted)")
-    parser.add_argument("--guidance", type=float, default=None)
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="python -m stages.generate", description="Text to motion with a trained motionforge model.",
+        epilog="key=value arguments override params (e.g. paths.artifacts=/elsewhere/artifacts).")
+    parser.add_argument("--model", default="mld", help=f"model family: {', '.join(MODELS)} (default mld)")
+    parser.add_argument("--text", action="append", default=[], help="a prompt (repeatable)")
+    parser.add_argument("--prompts", type=Path, default=None, metavar="FILE",
+                        help="a file of prompts, one per line: TEXT or TEXT | LENGTH; blank lines and # comments "
+                        "are skipped")
+    parser.add_argument("--length", type=int, default=120,
+                        help="frames at the dataset's fps (HumanML3D: 20) for prompts without one (default 120); "
+                        "every length must lie within the feature store's training motions (HumanML3D: 40..196), "
+                        "the error says the range")
+    parser.add_argument("--out", type=Path, required=True,
+                        help="a file whose extension is the format (.gif, .mp4, .png, .npy, .bvh; one prompt), or a "
+                        "directory receiving NN_<words>.<format> per prompt")
+    parser.add_argument("--format", dest="fmt", default=None, metavar="FORMAT",
+                        help=f"{', '.join(FORMATS)}: the format of the files written into a directory --out "
+                        f"(default {DEFAULT_FORMAT})")
+    parser.add_argument("--seed", type=int, default=0, help="sampling seed (default 0)")
+    parser.add_argument("--steps", type=int, default=None,
+                        help="sampling steps, at least 1 (default: the model's: MLD 50, MotionLCM 1, EMDM its trained "
+                        "steps, MotionDiffuse DDPM over all its steps)")
+    parser.add_argument("--guidance", type=float, default=None,
+                        help="classifier-free guidance scale (default: the sample section of params)")
     parser.add_argument("--trajectory", default=None,
                         help=f"pelvis path for controlled models: {', '.join(SHAPES)} or a .npy of (length, 3) metres")
     parser.add_argument("--size", type=float, default=None, help="trajectory size in metres (circle: radius)")
@@ -242,14 +503,25 @@ def main(argv: Sequence[str] | None = None) -> None:
     parser.add_argument("--segment", action="append", default=[], metavar="A:B=TEXT",
                         help=f"{COMPOSABLE} only: TEXT for frames [A, B); repeatable, the segments must cover "
                         "[0, --length)")
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> None:
+    parser = build_parser()
     args, overrides = parser.parse_known_args(argv)
-    if not 4 <= args.length <= 196:
-        sys.exit(f"generate: --length {args.length} is outside 4..196 frames")
     parts, segments = check_composition(parser, args)
-    lengths = [args.length] * (len(args.text) if args.text else 1)
     try:
-        paths = generate(load_params(overrides), args.model, args.text, lengths, args.out, args.seed, args.steps,
-                         args.guidance, args.trajectory, args.size, args.refine, parts, segments)
+        params = load_params(overrides)
+        if parts or segments:
+            prompts = [Prompt("", args.length, "--length")]
+        else:
+            prompts = [Prompt(text, args.length, f"--text {text!r}") for text in args.text]
+            if args.prompts is not None:
+                prompts += parse_prompt_file(args.prompts, args.length)
+        request = plan(params, args.model, prompts, args.out, args.fmt, args.seed, args.steps, args.guidance,
+                       args.trajectory, args.size, args.refine, parts, segments)
+        check_dataset_lengths(params, prompts)
+        paths = run_request(params, request)
     except (ValueError, FileNotFoundError) as err:
         sys.exit(f"generate: {err}")
     print("\n".join(str(p) for p in paths))

@@ -229,7 +229,7 @@ def test_rng_round_trip_gives_the_same_draws(tmp_path: Path) -> None:
 
 
 @pytest.mark.slow
-def test_generate_refuses_a_crafted_model(tmp_path: Path) -> None:
+def test_generate_refuses_a_crafted_model(tmp_path: Path, small_store: dict[str, Any]) -> None:
     """``python -m stages.generate`` on a planted ``train_mld/model.pt``: exit 1, one line, nothing ran."""
     marker = tmp_path / "pwned"
     model = plant(tmp_path / "artifacts" / "train_mld" / ckpt.MODEL_FILE, marker,
@@ -237,7 +237,7 @@ def test_generate_refuses_a_crafted_model(tmp_path: Path) -> None:
     out = tmp_path / "walk.npy"
     proc = subprocess.run(
         [sys.executable, "-m", "stages.generate", "--model", "mld", "--text", "a person walks", "--out", str(out),
-         f"paths.artifacts={tmp_path / 'artifacts'}"],
+         f"paths.artifacts={tmp_path / 'artifacts'}", f"features.out={small_store['features']['out']}"],
         cwd=REPO, capture_output=True, text=True, timeout=300)
     assert proc.returncode == 1
     assert proc.stderr == f"generate: {model}: {REFUSED}\n"

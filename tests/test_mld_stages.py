@@ -207,9 +207,9 @@ def test_generate_command_writes_joints_and_animation(trained, tmp_path):
     [npy] = generate.generate(trained, "mld", ["a person kicks"], [44], tmp_path / "kick.npy", seed=3)
     joints = np.load(npy)
     assert joints.shape == (44, 22, 3) and np.isfinite(joints).all()
-    gifs = generate.generate(trained, "mld", ["a person runs", "a person waves"], [40, 40], tmp_path / "m.gif",
-                             steps=2)
-    assert [p.name for p in gifs] == ["m_0.gif", "m_1.gif"] and all(p.stat().st_size > 1000 for p in gifs)
+    gifs = generate.generate(trained, "mld", ["a person runs", "a person waves"], [40, 40], tmp_path / "m", steps=2)
+    assert [p.name for p in gifs] == ["00_a_person_runs.gif", "01_a_person_waves.gif"]
+    assert all(p.stat().st_size > 1000 for p in gifs)
     with pytest.raises(ValueError, match="unknown model family 'nope'"):
         generate.generate(trained, "nope", ["x"], [40], tmp_path / "x.npy")
 

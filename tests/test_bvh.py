@@ -1,0 +1,174 @@
+"""BVH export (data/bvh.py): positions written then read back, known answers, standard files, bad files.
+
+The round trip is checked on a real HumanML3D clip (the fixture has the skeleton's bone lengths) and
+on synthetic motions retargeted to the skeleton's bones, to 1 mm; a motion with other bone lengths
+keeps every bone's direction. A 2-joint chain has known angles; a hand-written BVH in XYZ and ZXY
+channel orders has known positions.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from data.bvh import read_bvh, write_bvh
+from data.kinematics import forward_kinematics, inverse_kinematics
+from data.skeleton import HUMANML3D, Skeleton
+from data.synthetic import SyntheticConfig, generate_motion
+
+FIXTURE = Path(__file__).parent / "fixtures" / "humanml3d" / "new_joints_012314.npy"
+MM = 1e-3
+
+
+def retargeted(joints: np.ndarray) -> np.ndarray:
+    """The motion with the skeleton's bone lengths (HumanML3D's own retargeting: swing IK, then FK)."""
+    return forward_kinematics(inverse_kinematics(joints, HUMANML3D), joints[:, 0], HUMANML3D.offsets(), HUMANML3D)
+
+
+def real_motions() -> list[np.ndarray]:
+    synthetic = [generate_motion(7, k, SyntheticConfig(num_motions=4, workers=1)).joints for k in range(3)]
+    return [np.load(FIXTURE), *[retargeted(j) for j in synthetic]]
+
+
+def round_trip(joints: np.ndarray, tmp_path: Path, skeleton: Skeleton = HUMANML3D) -> np.ndarray:
+    path = write_bvh(joints, skeleton, tmp_path / "motion.bvh", skeleton.fps)
+    return read_bvh(path).joints(skeleton.joint_names)
+
+
+def test_round_trip_is_within_a_millimetre_on_real_motions(tmp_path: Path) -> None:
+    for joints in real_motions():
+        assert np.abs(HUMANML3D.bone_lengths_of(joints) - HUMANML3D.bone_lengths).max() < 1e-4
+        back = round_trip(joints, tmp_path)
+        assert back.shape == joints.shape
+        assert np.linalg.norm(back - joints, axis=-1).max() < MM
+
+
+def test_other_bone_lengths_keep_every_bone_direction(tmp_path: Path) -> None:
+    """A synthetic motion's bones differ from the skeleton's by centimetres: directions kept, lengths the skeleton's."""
+    joints = generate_motion(7, 0, SyntheticConfig(num_motions=4, workers=1)).joints.astype(np.float64)
+    assert np.abs(HUMANML3D.bone_lengths_of(joints) - HUMANML3D.bone_lengths).max() > 0.005
+    back = round_trip(joints, tmp_path)
+    parents = np.array(HUMANML3D.parents[1:])
+
+    def directions(x: np.ndarray) -> np.ndarray:
+        bones = x[:, 1:] - x[:, parents]
+        return bones / np.linalg.norm(bones, axis=-1, keepdims=True)
+
+    np.testing.assert_allclose(directions(back), directions(joints), atol=1e-5)
+    np.testing.assert_allclose(HUMANML3D.bone_lengths_of(back), np.broadcast_to(HUMANML3D.bone_lengths, back.shape[:2]),
+                               atol=1e-5)
+    np.testing.assert_allclose(back[:, 0], joints[:, 0], atol=1e-6)
+
+
+def chain_skeleton() -> Skeleton:
+    """Two joints, the bone 1 m along +x in the rest pose."""
+    return Skeleton(name="chain", joint_names=("base", "tip"), kinematic_chain=((0, 1),),
+                    raw_offsets=np.array([[0.0, 0, 0], [1, 0, 0]]), bone_lengths=np.array([0.0, 1.0]),
+                    feet_left=(0, 1), feet_right=(0, 1), face_joints=(0, 1, 0, 1), leg_bones=(0, 1),
+                    contact_threshold=0.0, fps=20.0, unit=1.0, mirror_pairs=(), min_frames=1)
+
+
+def test_two_joint_chain_known_answer(tmp_path: Path) -> None:
+    """Up: Rz(90) turns +x onto +y; towards -z: Ry(90); the file is exactly this."""
+    base = np.array([1.0, 2.0, 3.0])
+    joints = np.array([[base, base + [0, 1, 0]], [base, base + [0, 0, -1]]])
+    path = write_bvh(joints, chain_skeleton(), tmp_path / "chain.bvh", fps=20.0)
+    assert path.read_text().splitlines() == [
+        "HIERARCHY", "ROOT base", "{", "\tOFFSET 0.000000 0.000000 0.000000",
+        "\tCHANNELS 6 Xposition Yposition Zposition Zrotation Xrotation Yrotation",
+        "\tJOINT tip", "\t{", "\t\tOFFSET 1.000000 0.000000 0.000000", "\t\tCHANNELS 3 Zrotation Xrotation Yrotation",
+        "\t\tEnd Site", "\t\t{", "\t\t\tOFFSET 0.500000 0.000000 0.000000", "\t\t}", "\t}", "}",
+        "MOTION", "Frames: 2", "Frame Time: 0.05000000",
+        "1.000000 2.000000 3.000000 90.000000 0.000000 0.000000 0.000000 0.000000 0.000000",
+        "1.000000 2.000000 3.000000 0.000000 0.000000 90.000000 0.000000 0.000000 0.000000",
+    ]
+    np.testing.assert_allclose(read_bvh(path).positions, joints, atol=1e-6)
+
+
+STANDARD = """HIERARCHY
+ROOT Hips
+{
+  OFFSET 5.0 0.0 0.0
+  CHANNELS 6 Xposition Yposition Zposition Xrotation Yrotation Zrotation
+  JOINT Arm
+  {
+    OFFSET 1.0 0.0 0.0
+    CHANNELS 3 Zrotation Xrotation Yrotation
+    End Site
+    {
+      OFFSET 0.0 2.0 0.0
+    }
+  }
+  JOINT Leg
+  {
+    OFFSET 0.0 -1.0 0.0
+    CHANNELS 3 Zrotation Xrotation Yrotation
+    JOINT Foot
+    {
+      OFFSET 0.0 0.0 1.0
+      CHANNELS 3 Xrotation Yrotation Zrotation
+    }
+  }
+}
+MOTION
+Frames: 2
+Frame Time: 0.0333333
+0 0 0  0 0 0  0 0 0  0 0 0  0 0 0
+1 2 3  90 90 0  0 0 0  90 90 0  0 0 90
+"""
+
+
+def test_reads_standard_bvh_in_xyz_and_zxy_orders(tmp_path: Path) -> None:
+    """Frame 1: the root's Rx(90) Ry(90) (XYZ order) turns +x onto +y, +y onto +z and +z onto +x; Leg's
+    Rz(90) Rx(90) (ZXY order) turns Foot's +z onto +x (the other order would give -y)."""
+    path = tmp_path / "standard.bvh"
+    path.write_text(STANDARD)
+    motion = read_bvh(path)
+    assert motion.names == ["Hips", "Arm", "Leg", "Foot"] and motion.parents == [-1, 0, 0, 2]
+    assert motion.channels[0][:3] == ("Xposition", "Yposition", "Zposition") and motion.frame_time == 0.0333333
+    np.testing.assert_allclose(motion.positions[0], [[0, 0, 0], [1, 0, 0], [0, -1, 0], [0, -1, 1]], atol=1e-12)
+    # the root's offset is replaced by its position channels; Foot's own rotation moves nothing below it
+    np.testing.assert_allclose(motion.positions[1], [[1, 2, 3], [1, 3, 3], [1, 2, 2], [1, 3, 2]], atol=1e-12)
+
+
+def test_written_header_parses_with_the_skeleton_hierarchy(tmp_path: Path) -> None:
+    joints = np.load(FIXTURE)[:10]
+    motion = read_bvh(write_bvh(joints, HUMANML3D, tmp_path / "m.bvh", HUMANML3D.fps))
+    assert motion.positions.shape == (10, len(motion.names), 3) and motion.frame_time == 0.05
+    assert set(HUMANML3D.joint_names) <= set(motion.names)
+    helpers = [name for name in motion.names if name not in HUMANML3D.joint_names]
+    assert helpers == ["pelvis_to_left_hip", "pelvis_to_right_hip", "pelvis_to_spine1", "spine3_to_neck",
+                       "spine3_to_left_collar", "spine3_to_right_collar"]
+    offsets = HUMANML3D.offsets()
+    for j, name in enumerate(HUMANML3D.joint_names[1:], 1):
+        index = motion.names.index(name)
+        parent = motion.names[motion.parents[index]]
+        if parent in helpers:  # a zero-offset helper at the skeleton parent
+            assert not motion.offsets[motion.names.index(parent)].any()
+            parent = motion.names[motion.parents[motion.names.index(parent)]]
+        assert parent == HUMANML3D.joint_names[HUMANML3D.parents[j]]
+        np.testing.assert_allclose(motion.offsets[index], offsets[j], atol=1e-6)
+    assert motion.channels[0] == ("Xposition", "Yposition", "Zposition", "Zrotation", "Xrotation", "Yrotation")
+    assert all(c == ("Zrotation", "Xrotation", "Yrotation") for c in motion.channels[1:])
+
+
+@pytest.mark.parametrize(("text", "message"), [
+    (STANDARD.replace("Frames: 2", "Frames: 3"), r"standard\.bvh:30: unexpected end of file"),
+    (STANDARD.replace("CHANNELS 3 Zrotation Xrotation Yrotation\n    End", "CHANNELS 3 Zrotation Xrot Yrotation\n"
+                      "    End"), r"standard\.bvh:9: unknown channel 'Xrot' of joint 'Arm'"),
+    (STANDARD.replace("OFFSET 1.0 0.0 0.0", "OFFSET 1.0 zero 0.0"), r"standard\.bvh:8: expected an OFFSET value"),
+    (STANDARD + "7\n", r"standard\.bvh:31: more values than 2 frames of 15 channels"),
+])
+def test_bad_files_name_the_line(tmp_path: Path, text: str, message: str) -> None:
+    path = tmp_path / "standard.bvh"
+    path.write_text(text)
+    with pytest.raises(ValueError, match=message):
+        read_bvh(path)
+
+
+def test_write_refuses_joints_of_another_skeleton(tmp_path: Path) -> None:
+    with pytest.raises(ValueError, match=r"expected joints \(T, 22, 3\), got \(5, 21, 3\)"):
+        write_bvh(np.zeros((5, 21, 3)), HUMANML3D, tmp_path / "x.bvh", 20.0)
+    assert not (tmp_path / "x.bvh").exists()

@@ -1,0 +1,213 @@
+"""``python -m stages.generate``: prompt files, output names, options checked before any model is loaded.
+
+The option checks run against the small feature store and an artefacts folder without models: each
+bad option must end the command with status 1 and exactly one line naming the option (or the file
+and line) before it would have looked for a model (whose absence would be another message), and
+write nothing; every case in process, four of them as a subprocess. The end-to-end test samples a
+prompt file and ``--text`` with a tiny untrained MLD into BVH files named by position and words.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import subprocess
+import sys
+from pathlib import Path
+from typing import Any
+
+import pytest
+import torch
+
+from data.bvh import read_bvh
+from data.skeleton import HUMANML3D
+from models.mld import MLDConfig, MLDDenoiser
+from models.vae import MotionVAE, MotionVAEConfig
+from pipelines.checkpoint import final_model_payload, save_final_model
+from pipelines.feature_store import FeatureStore
+from stages import generate
+from stages.generate import Prompt
+
+REPO = Path(__file__).resolve().parent.parent
+
+
+# --------------------------------------------------------------------------------------------------
+# Prompt files and output names (in process)
+# --------------------------------------------------------------------------------------------------
+
+
+def test_prompt_file_lines_lengths_comments(tmp_path: Path) -> None:
+    path = tmp_path / "prompts.txt"
+    path.write_text("# a comment\na person walks forward\n\n  a person jumps | 80  \na | b | 60\n")
+    assert generate.parse_prompt_file(path, 120) == [
+        Prompt("a person walks forward", 120, f"{path}:2"), Prompt("a person jumps", 80, f"{path}:4"),
+        Prompt("a | b", 60, f"{path}:5")]
+
+
+@pytest.mark.parametrize(("text", "message"), [
+    ("a person walks\na person jumps | fast\n",
+     "{path}:2: length 'fast' is not a whole number of frames (expected TEXT | LENGTH)"),
+    ("a person walks\n | 60\n", "{path}:2: no text before '|' (expected TEXT or TEXT | LENGTH)"),
+    ("a person walks | -5\n", "{path}:1: length '-5' is not a whole number of frames (expected TEXT | LENGTH)"),
+    ("# only a comment\n\n", "--prompts {path}: no prompts (every line is blank or a # comment)"),
+])
+def test_bad_prompt_lines_name_file_and_line(tmp_path: Path, text: str, message: str) -> None:
+    path = tmp_path / "prompts.txt"
+    path.write_text(text)
+    with pytest.raises(ValueError) as err:
+        generate.parse_prompt_file(path, 120)
+    assert str(err.value) == message.format(path=path)
+
+
+def test_output_names(tmp_path: Path) -> None:
+    prompts = [Prompt("A person walks, then sits down!", 60, "x"), Prompt("???", 60, "y")]
+    assert generate.output_paths(tmp_path / "out", "bvh", prompts) == [
+        tmp_path / "out" / "00_a_person_walks_then_sits_down.bvh", tmp_path / "out" / "01_motion.bvh"]
+    assert generate.output_paths(tmp_path / "out", None, prompts[:1]) == [tmp_path / "out" / "00_a_person_walks_then_"
+                                                                                            "sits_down.gif"]
+    assert generate.output_paths(tmp_path / "walk.BVH", None, prompts[:1]) == [tmp_path / "walk.BVH"]
+    eleven = generate.output_paths(tmp_path / "out", "npy", prompts[:1] * 101)
+    assert eleven[0].name == "000_a_person_walks_then_sits_down.npy" and eleven[-1].name.startswith("100_")
+    assert not (tmp_path / "out").exists()
+
+
+def test_length_range_is_the_training_split(small_store: dict[str, Any]) -> None:
+    store = FeatureStore(small_store["features"]["out"])
+    lengths = [item.length for item in store.split("train")]
+    assert generate.length_range(store) == (min(lengths), max(lengths))
+
+
+# --------------------------------------------------------------------------------------------------
+# Options checked before any model (subprocess: exit status 1, one line, nothing written)
+# --------------------------------------------------------------------------------------------------
+
+
+def run_cli(args: list[str], params: dict[str, Any], artifacts: Path, env: dict[str, str] | None = None
+            ) -> subprocess.CompletedProcess[str]:
+    return subprocess.run([sys.executable, "-m", "stages.generate", *args, f"paths.artifacts={artifacts}",
+                           f"features.out={params['features']['out']}"],
+                          cwd=REPO, capture_output=True, text=True, timeout=300, env=env)
+
+
+@pytest.fixture(scope="module")
+def bounds(small_store: dict[str, Any]) -> tuple[int, int]:
+    return generate.length_range(FeatureStore(small_store["features"]["out"]))
+
+
+def cases(tmp: Path, store: str, low: int, high: int) -> list[tuple[list[str], str]]:
+    """(arguments, the expected stderr line) for each kind of bad option."""
+    prompts = tmp / "prompts.txt"
+    prompts.write_text(f"a person walks | {low}\n# a comment\na person jumps | ten\n")
+    long = tmp / "long.txt"
+    long.write_text(f"a person walks\n\na person jumps | {high + 1}\n")
+    known = "emdm, mld, motiondiffuse, motionlcm, motionlcm-control"
+    walks = ["--text", "a person walks"]
+    return [
+        ([*walks, "--steps", "0", "--out", str(tmp / "w.gif")], "--steps 0: must be at least 1"),
+        ([*walks, "--model", "motionlcm", "--steps", "3", "--out", str(tmp / "w.gif")],
+         "--steps 3: MotionLCM samples with 1, 2, 4 steps"),
+        ([*walks, "--model", "emdm", "--steps", "50", "--out", str(tmp / "w.gif")],
+         "--steps 50: EMDM samples with the 10 steps it was trained with (train_emdm.num_steps)"),
+        ([*walks, "--length", str(low - 1), "--out", str(tmp / "w.gif")],
+         f"--text 'a person walks': length {low - 1} is outside {low}..{high} frames, the lengths of the training "
+         f"motions ({store})"),
+        (["--prompts", str(long), "--out", str(tmp / "out")],
+         f"{long}:3: length {high + 1} is outside {low}..{high} frames, the lengths of the training motions ({store})"),
+        (["--prompts", str(prompts), "--out", str(tmp / "out")],
+         f"{prompts}:3: length 'ten' is not a whole number of frames (expected TEXT | LENGTH)"),
+        ([*walks, "--out", str(tmp / "w.mp4")],
+         f"--out {tmp / 'w.mp4'}: writing MP4 needs ffmpeg on PATH, which is not installed; write a .gif instead"),
+        ([*walks, "--format", "mp4", "--out", str(tmp / "out")],
+         "--format mp4: writing MP4 needs ffmpeg on PATH, which is not installed; write a .gif instead"),
+        ([*walks, "--out", str(tmp / "w.avi")], f"--out {tmp / 'w.avi'}: unknown format 'avi'; use gif, mp4, png, npy, "
+                                                "bvh"),
+        ([*walks, "--format", "avi", "--out", str(tmp / "out")],
+         "--format avi: unknown format 'avi'; use gif, mp4, png, npy, bvh"),
+        ([*walks, "--format", "bvh", "--out", str(tmp / "w.gif")], f"--out {tmp / 'w.gif'} and --format bvh disagree; "
+                                                                   "give one of them"),
+        ([*walks, "--text", "a person jumps", "--out", str(tmp / "w.gif")],
+         f"--out {tmp / 'w.gif'}: 2 prompts are written into a directory; give a directory (and --format)"),
+        ([*walks, "--model", "nope", "--out", str(tmp / "w.gif")],
+         f"--model: unknown model family 'nope'; choose one of {known}"),
+        ([*walks, "--model", "vae", "--out", str(tmp / "w.gif")],
+         f"--model: model family 'vae' has no generator (it is evaluated only); choose one of {known}"),
+    ]
+
+
+def test_bad_options_end_before_any_model(small_store: dict[str, Any], bounds: tuple[int, int], tmp_path: Path,
+                                          monkeypatch: pytest.MonkeyPatch) -> None:
+    """In process, every case: ``main`` exits with the case's one-line message; nothing is written."""
+    no_ffmpeg = tmp_path / "bin"
+    no_ffmpeg.mkdir()
+    monkeypatch.setenv("PATH", str(no_ffmpeg))
+    store = str(Path(small_store["features"]["out"]).resolve())
+    overrides = [f"paths.artifacts={tmp_path / 'artifacts'}", f"features.out={store}"]
+    for args, message in cases(tmp_path, store, *bounds):
+        with pytest.raises(SystemExit) as exit_info:
+            generate.main([*args, *overrides])
+        assert exit_info.value.code == f"generate: {message}", args
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["bin", "long.txt", "prompts.txt"]
+
+
+def test_bad_options_through_the_command(small_store: dict[str, Any], bounds: tuple[int, int],
+                                         tmp_path: Path) -> None:
+    """As a command (steps, length, MP4 without ffmpeg, model): status 1, exactly one line, no traceback."""
+    artifacts, no_ffmpeg = tmp_path / "artifacts", tmp_path / "bin"
+    no_ffmpeg.mkdir()
+    env = dict(os.environ, PATH=str(no_ffmpeg))
+    store = str(Path(small_store["features"]["out"]).resolve())
+    chosen = [cases(tmp_path, store, *bounds)[k] for k in (0, 3, 6, 12)]
+    for args, message in chosen:
+        proc = run_cli(args, small_store, artifacts, env)
+        assert (proc.returncode, proc.stderr, proc.stdout) == (1, f"generate: {message}\n", ""), args
+    assert not artifacts.exists() and not (tmp_path / "w.gif").exists() and not (tmp_path / "w.mp4").exists()
+
+
+def test_help_documents_out_prompts_and_lengths() -> None:
+    text = generate.build_parser().format_help()
+    for words in ("--prompts FILE", "TEXT | LENGTH", "(HumanML3D: 40..196)", "NN_<words>.<format>", ".bvh",
+                  "at least 1"):
+        assert words in " ".join(text.split()), words
+
+
+# --------------------------------------------------------------------------------------------------
+# End to end with a tiny untrained MLD
+# --------------------------------------------------------------------------------------------------
+
+
+def save_tiny_mld(artifacts: Path) -> None:
+    """Untrained one-layer VAE and MLD denoiser as ``train_vae`` / ``train_mld`` outputs."""
+    torch.manual_seed(0)
+    vae = MotionVAEConfig(latent_dim=16, layers=1, heads=2, ff_dim=32, dropout=0.0)
+    mld = MLDConfig(latent_dim=16, layers=1, heads=2, ff_dim=32, dropout=0.0, time_freq_dim=16)
+    schedule = {"beta_schedule": "scaled_linear", "num_train_timesteps": 1000, "beta_start": 0.00085,
+                "beta_end": 0.012}
+    for stage, name, model, config in (("train_vae", "vae", MotionVAE(vae), {}),
+                                       ("train_mld", "denoiser", MLDDenoiser(mld), schedule)):
+        cfg = dataclasses.asdict(vae if name == "vae" else mld)
+        (artifacts / stage).mkdir(parents=True)
+        save_final_model(artifacts / stage, final_model_payload({"models": {name: model.state_dict()}, "step": 0},
+                                                                {"model": cfg, **config}))
+
+
+@pytest.mark.slow
+def test_prompt_file_and_texts_to_bvh(small_store: dict[str, Any], bounds: tuple[int, int], tmp_path: Path) -> None:
+    """``--text`` first, then the file's prompts, each with its length, one BVH per prompt; the same seed
+    writes the same files again."""
+    low, high = bounds
+    save_tiny_mld(tmp_path / "artifacts")
+    prompts = tmp_path / "prompts.txt"
+    prompts.write_text(f"# two prompts\na person walks forward | {low}\n\na person jumps\n")
+    args = ["--text", "A person waves!", "--prompts", str(prompts), "--length", str(high), "--steps", "2",
+            "--format", "bvh"]
+    proc = run_cli([*args, "--out", str(tmp_path / "out")], small_store, tmp_path / "artifacts")
+    assert proc.returncode == 0, proc.stderr
+    names = ["00_a_person_waves.bvh", "01_a_person_walks_forward.bvh", "02_a_person_jumps.bvh"]
+    assert proc.stdout.splitlines() == [str(tmp_path / "out" / name) for name in names]
+    for name, length in zip(names, (high, low, high), strict=True):
+        motion = read_bvh(tmp_path / "out" / name)
+        assert motion.positions.shape[0] == length and motion.frame_time == 1 / HUMANML3D.fps
+    again = run_cli([*args, "--out", str(tmp_path / "again")], small_store, tmp_path / "artifacts")
+    assert again.returncode == 0, again.stderr
+    for name in names:
+        assert (tmp_path / "again" / name).read_bytes() == (tmp_path / "out" / name).read_bytes()
