@@ -257,11 +257,20 @@ def _replication_draws(items: Sequence[StoredItem], cfg: EvalConfig, r: int) -> 
     return draw(items, rng, cfg.unit_length), draw(items, rng, cfg.unit_length)
 
 
-def references(items: Sequence[StoredItem], embedder: MotionEmbedder, cfg: EvalConfig) -> list[Reference]:
+def check_group_size(num_items: int, cfg: EvalConfig, split: str = "test") -> None:
+    """ValueError unless ``split``'s ``num_items`` hold at least one R-precision group.
+
+    Smaller data sets (the smoke profile's) set a smaller ``evaluate.group_size``.
+    """
+    if num_items < cfg.group_size:
+        raise ValueError(f"evaluate.group_size={cfg.group_size} is larger than the {split} split "
+                         f"({num_items} items): R-precision needs one full group; set a smaller evaluate.group_size")
+
+
+def references(items: Sequence[StoredItem], embedder: MotionEmbedder, cfg: EvalConfig,
+               split: str = "test") -> list[Reference]:
     """The ``replications`` references of the protocol (a pure function of the items and ``cfg.seed``)."""
-    if len(items) < cfg.group_size:
-        raise ValueError(f"the test split has {len(items)} items, fewer than one R-precision group "
-                         f"({cfg.group_size})")
+    check_group_size(len(items), cfg, split)
     refs = []
     for r in range(cfg.replications):
         d, ref_draw = _replication_draws(items, cfg, r)
@@ -281,6 +290,7 @@ def save_references(path: Path, refs: Sequence[Reference]) -> None:
 
 def load_references(path: Path, items: Sequence[StoredItem], cfg: EvalConfig) -> list[Reference]:
     """:func:`references` as saved by :func:`save_references`; an error if they belong to other items or cfg."""
+    check_group_size(len(items), cfg)
     refs = []
     with np.load(path, allow_pickle=False) as saved:
         if f"lengths_{cfg.replications - 1}" not in saved or f"lengths_{cfg.replications}" in saved:

@@ -804,7 +804,7 @@ def _run_info(stage: str, name: str, opts: RayOptions, storage: str, use_gpu: bo
     """Worker-side settings, resolved on the driver (env vars do not reach a remote cluster)."""
     return RunInfo(
         stage=stage, run_name=name, checkpoint_every=opts.checkpoint_every,
-        report_every=opts.report_every, torch_threads=max(1, int(opts.cpus_per_worker)),
+        report_every=opts.report_every, torch_threads=max(1, round(opts.cpus_per_worker)),  # sweep trials: 1.99
         wandb_mode=os.environ.get("WANDB_MODE", "offline"), wandb_dir=tracking.default_wandb_dir(storage),
         wandb_project=opts.wandb_project, use_gpu=use_gpu)
 

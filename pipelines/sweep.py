@@ -10,6 +10,7 @@ Params::
     sweep:
       settings: {num_samples, metric, mode, scheduler, grace_period, reduction_factor, max_t,
                  report_every, max_concurrent_trials, trial_cpus, max_failures, seed}
+      # metric/mode null: the target's own (its validation metric when it has a validate hook)
       <stage>:                     # keys of params[<stage>] (dotted into groups) and how to vary them
         lr: loguniform(1e-5, 1e-3)
         loop.batch_size: choice([16, 32])
@@ -23,14 +24,23 @@ Python literals read by ``ast.literal_eval``).
 
 How it runs (DESIGN.md "Facts about the stack"; reference/pipeline_stack.md sections 2-3):
 
+* before any work (prerequisites included) the stage's loop config is built once from params
+  (its checks, its inputs) and the cluster is checked to hold one trial; both are
+  :class:`SweepConfigError` (exit status 2 of ``stages.sweep``);
+* trials are ranked by ``sweep.settings.metric`` (``mode``), by default the target's: its
+  validation metric (e.g. ``val_MPJPE_mm`` of ``train_vae``), measured on the ``val`` split
+  after training, else the last training ``loss``;
 * each trial is :func:`trial_driver`, a Tune function trainable taking ``trial_cpus`` (e.g.
   0.01) logical CPUs; it applies the trial's values to ``params[<stage>]``, builds the loop
   config, and fits a ``TorchTrainer`` from :func:`pipelines.runner.build_trainer` named
   ``<stage>-<trial id>`` with a ``TuneReportCallback``. The runner then reports metrics
   every ``report_every`` steps, so one Tune training iteration = one report and ASHA's
-  ``grace_period``/``max_t`` count reports;
-* ``max_concurrent_trials: auto`` runs as many trials at once as the cluster's CPUs (and
-  GPUs) hold (:func:`fit_concurrency`);
+  ``grace_period``/``max_t`` count reports. With a validation hook the trial reports once,
+  after training: its validation metrics and its last training metrics;
+* a trial takes ``ray.num_workers x ray.cpus_per_worker`` logical CPUs in all: its driver's
+  ``trial_cpus`` come out of its workers' share (the driver idles while they train), so a
+  2-CPU machine runs 2-CPU trials; ``max_concurrent_trials: auto`` runs as many trials at
+  once as the cluster's CPUs (and GPUs) hold (:func:`fit_concurrency`);
 * the Tune experiment lives at ``<storage>/sweep-<stage>-<hash>``, the hash covering the
   space, the settings and ``params[<stage>]`` (:func:`experiment_name`). Started again with
   the same arguments, an interrupted sweep is restored (``Tuner.restore``): finished trials
@@ -258,8 +268,9 @@ class SweepSettings:
 
     Attributes:
         num_samples: samples of the random dimensions (times every grid combination).
-        metric: reported metric to optimise (the last value reported by a trial counts).
-        mode: "min" or "max".
+        metric: reported metric to optimise (the last value reported by a trial counts); None:
+            the target's (:attr:`SweepTarget.metric`).
+        mode: "min" or "max"; None: the target's.
         scheduler: "asha" (early stopping) or "fifo" (none).
         grace_period: ASHA: reports before a trial may be stopped.
         reduction_factor: ASHA: 1/reduction_factor of the trials go on at each rung.
@@ -272,8 +283,8 @@ class SweepSettings:
     """
 
     num_samples: int = 4
-    metric: str = "loss"
-    mode: str = "min"
+    metric: str | None = None
+    mode: str | None = None
     scheduler: str = "asha"
     grace_period: int = 1
     reduction_factor: int = 2
@@ -297,7 +308,8 @@ class SweepSettings:
 
     def _validate(self) -> None:
         checks = {
-            "mode": self.mode in ("min", "max"),
+            "metric": self.metric is None or (isinstance(self.metric, str) and bool(self.metric)),
+            "mode": self.mode in (None, "min", "max"),
             "scheduler": self.scheduler in ("asha", "fifo"),
             "num_samples": self.num_samples >= 1,
             "grace_period": 1 <= self.grace_period <= self.max_t,
@@ -314,20 +326,23 @@ class SweepSettings:
                                    "(trial_cpus must be > 0: Ray rejects a zero-CPU trial)")
 
 
-def fit_concurrency(cluster: Mapping[str, float], num_workers: int, cpus_per_worker: float, trial_cpus: float,
+def fit_concurrency(cluster: Mapping[str, float], num_workers: int, cpus_per_worker: float,
                     gpus_per_worker: float = 0.0) -> int:
-    """How many trials fit on ``cluster`` at once (each: its driver + ``num_workers`` Train workers).
+    """How many trials fit on ``cluster`` at once, each ``num_workers x cpus_per_worker`` CPUs (its
+    driver's share included, :func:`trial_ray_options`) and ``num_workers x gpus_per_worker`` GPUs.
 
-    Raises ValueError when not even one trial fits (Ray would wait forever).
+    Raises :class:`SweepConfigError` naming the keys when not even one trial fits (Ray would wait
+    forever).
     """
-    need_cpu = num_workers * cpus_per_worker + trial_cpus
+    need_cpu = num_workers * cpus_per_worker
     fits = [math.floor(cluster.get("CPU", 0.0) / need_cpu + 1e-9)]
     if gpus_per_worker > 0:
         fits.append(math.floor(cluster.get("GPU", 0.0) / (num_workers * gpus_per_worker) + 1e-9))
     if min(fits) < 1:
-        raise ValueError(f"one trial needs {need_cpu:g} CPUs ({num_workers} worker(s) x {cpus_per_worker:g} "
-                         f"+ {trial_cpus:g} for its driver) and {num_workers * gpus_per_worker:g} GPUs; "
-                         f"the cluster has {cluster.get('CPU', 0):g} CPUs and {cluster.get('GPU', 0):g} GPUs")
+        raise SweepConfigError(
+            f"one trial needs {need_cpu:g} CPUs (ray.num_workers={num_workers} x ray.cpus_per_worker="
+            f"{cpus_per_worker:g}) and {num_workers * gpus_per_worker:g} GPUs; the cluster has "
+            f"{cluster.get('CPU', 0):g} CPUs and {cluster.get('GPU', 0):g} GPUs")
     return min(fits)
 
 
@@ -358,9 +373,12 @@ class SweepTarget:
             trial builds on); gets a work directory and the Ray storage and returns loop-config
             overrides applied to every trial.
         validate: ``(trial params, loop config, final training state) -> metrics`` measured on
-            held-out data after a trial's training and reported to Tune once more (e.g.
-            ``val_FID``), so ``sweep.settings.metric`` can rank trials by a validation metric
+            held-out data after a trial's training and reported to Tune once, with the last
+            training metrics (e.g. ``val_FID``), so trials are ranked by a validation metric
             rather than by their training loss.
+        metric: what ranks the trials unless ``sweep.settings.metric`` names another: the
+            validation metric ``validate`` returns, else ``loss``.
+        mode: "min" or "max" for ``metric``.
     """
 
     stage: str
@@ -368,6 +386,8 @@ class SweepTarget:
     loop_config: Callable[[dict], dict]
     prerequisite: Prerequisite | None = None
     validate: Callable[[dict, dict, dict], dict[str, float]] | None = None
+    metric: str = "loss"
+    mode: str = "min"
 
 
 @dataclass(frozen=True)
@@ -430,8 +450,9 @@ def trial_driver(config: dict, job: SweepJob) -> None:
     if job.target.validate is not None and result.checkpoint is not None:
         with result.checkpoint.as_directory() as directory:
             state = load_state(Path(directory))
+        training = {key: value for key, value in (result.metrics or {}).items() if _is_number(value)}
         metrics = job.target.validate(params, loop_config, state)
-        tune.report({**metrics, "step": state["step"], "planned_steps": planned})
+        tune.report({**training, **metrics, "step": state["step"], "planned_steps": planned})
 
 
 def train_once(stage: str, spec: TrainSpec, loop_config: Mapping[str, Any], ray_cfg: Mapping[str, Any] | None,
@@ -512,22 +533,36 @@ class SweepResult:
     restored: bool
 
 
-def _trial_ray_options(params: Mapping[str, Any], settings: SweepSettings) -> RayOptions:
-    """The ``ray`` section for trials: Train workers (never in-process) reporting every ``report_every``."""
+def trial_ray_options(params: Mapping[str, Any], settings: SweepSettings) -> RayOptions:
+    """The ``ray`` section for trials: Train workers (never in-process) reporting every ``report_every``.
+
+    The workers reserve ``ray.cpus_per_worker`` less their share of the driver's ``trial_cpus``
+    (their torch threads stay ``ray.cpus_per_worker``): a trial takes ``num_workers x
+    cpus_per_worker`` logical CPUs in all, so 2-CPU trials fit a 2-CPU machine and whole trials
+    pack a node.
+    """
     opts = RayOptions.from_dict(params.get("ray"))
     if opts.in_process:
         print("sweep: ray.num_workers=0/local runs no Train job; trials use 1 Ray Train worker")
         opts = replace(opts, num_workers=max(1, opts.num_workers), local=False)
-    return replace(opts, report_every=settings.report_every)
+    if settings.trial_cpus >= opts.cpus_per_worker:
+        raise SweepConfigError(f"sweep.settings.trial_cpus={settings.trial_cpus:g} must be smaller than "
+                               f"ray.cpus_per_worker={opts.cpus_per_worker:g} (it comes out of the workers' share)")
+    return replace(opts, report_every=settings.report_every,
+                   cpus_per_worker=opts.cpus_per_worker - settings.trial_cpus / opts.num_workers)
 
 
 def max_concurrent(settings: SweepSettings, opts: RayOptions) -> int:
-    """``max_concurrent_trials`` (resolving "auto" against the connected cluster)."""
-    if settings.max_concurrent_trials != "auto":
-        return int(settings.max_concurrent_trials)
+    """``max_concurrent_trials`` (resolving "auto" against the connected cluster) for trials of ``opts``
+    (:func:`trial_ray_options`); :class:`SweepConfigError` when not even one trial fits, whatever it says."""
     cluster = ray.cluster_resources()
-    gpus = 1.0 if decide_use_gpu(opts.use_gpu, opts.num_workers, cluster) else 0.0
-    return fit_concurrency(cluster, opts.num_workers, opts.cpus_per_worker, settings.trial_cpus, gpus)
+    try:
+        gpus = 1.0 if decide_use_gpu(opts.use_gpu, opts.num_workers, cluster) else 0.0
+    except ValueError as err:
+        raise SweepConfigError(f"ray.use_gpu: {err}") from None
+    cpus_per_worker = opts.cpus_per_worker + settings.trial_cpus / opts.num_workers  # as configured
+    fits = fit_concurrency(cluster, opts.num_workers, cpus_per_worker, gpus)
+    return fits if settings.max_concurrent_trials == "auto" else int(settings.max_concurrent_trials)
 
 
 def _make_tuner(trainable: Any, space: Mapping[str, Dimension], settings: SweepSettings, concurrency: int,
@@ -548,7 +583,7 @@ def _make_tuner(trainable: Any, space: Mapping[str, Dimension], settings: SweepS
     )
 
 
-def _fit(job: SweepJob, space: Mapping[str, Dimension], settings: SweepSettings, name: str,
+def _fit(job: SweepJob, space: Mapping[str, Dimension], settings: SweepSettings, name: str, concurrency: int,
          callbacks: Sequence[Any]) -> tuple[tune.ExperimentAnalysis, bool]:
     """Run (or restore and finish) the Tune experiment; returns its saved state and whether it was restored.
 
@@ -564,7 +599,6 @@ def _fit(job: SweepJob, space: Mapping[str, Dimension], settings: SweepSettings,
         tuner = tune.Tuner.restore(path, trainable=trainable, param_space=param_space(space),
                                    resume_unfinished=True, resume_errored=False, restart_errored=False)
     else:
-        concurrency = max_concurrent(settings, job.ray)
         print(f"sweep: {expected_trials(space, settings.num_samples)} trial(s), {concurrency} at a time -> {path}")
         tuner = _make_tuner(trainable, space, settings, concurrency, name, job.storage, callbacks)
     grid = tuner.fit()
@@ -679,6 +713,25 @@ def write_outputs(out_dir: Path, stage: str, table: list[dict[str, Any]], best: 
         (tmp / "best_params.yaml").write_text(best_yaml, encoding="utf-8")
 
 
+def ranking_settings(settings: SweepSettings, target: SweepTarget) -> SweepSettings:
+    """``settings`` with ``metric``/``mode`` resolved: the ones set there, else the target's."""
+    return replace(settings, metric=settings.metric or target.metric, mode=settings.mode or target.mode)
+
+
+def check_loop_config(target: SweepTarget, params: dict) -> None:
+    """Build the swept run's loop config once from ``params``: its checks and inputs, before any work.
+
+    A ValueError of the stage's checks is a :class:`SweepConfigError`; a missing input (e.g. no
+    feature store) stays a FileNotFoundError.
+    """
+    try:
+        target.loop_config(params)
+    except SweepConfigError:
+        raise
+    except ValueError as err:
+        raise SweepConfigError(str(err)) from None
+
+
 def run_sweep(target: SweepTarget, params: dict, repo_root: Path, *, callbacks: Sequence[Any] = ()) -> SweepResult:
     """Sweep ``target`` as ``params['sweep']`` declares; write ``<paths.artifacts>/sweeps/<stage>/``.
 
@@ -689,20 +742,22 @@ def run_sweep(target: SweepTarget, params: dict, repo_root: Path, *, callbacks: 
     """
     stage = target.stage
     sweep = params.get("sweep") or {}
-    settings = SweepSettings.from_dict(sweep.get("settings"))
+    settings = ranking_settings(SweepSettings.from_dict(sweep.get("settings")), target)
     space = parse_space(stage, sweep.get(stage), params[stage])
     name = experiment_name(stage, space, settings, params[stage])
-    opts = _trial_ray_options(params, settings)
+    opts = trial_ray_options(params, settings)
+    check_loop_config(target, params)
     storage = ray_storage(params)
     artifacts = repo_root / params["paths"]["artifacts"] / "sweeps"
     check_output(artifacts / stage, owner="sweep")
     started = ensure_ray(opts.address, opts.runtime_env)
     try:
+        concurrency = max_concurrent(settings, opts)  # before the prerequisite: a trial must fit
         overrides = {}
         if target.prerequisite is not None:
             overrides = target.prerequisite(params, artifacts / f"{stage}-prerequisites", storage)
         job = SweepJob(target, params, overrides, opts, storage)
-        analysis, restored = _fit(job, space, settings, name, callbacks)
+        analysis, restored = _fit(job, space, settings, name, concurrency, callbacks)
     finally:
         if started:
             ray.shutdown()

@@ -3,8 +3,10 @@
 Sweeps rank trials by what a user cares about, not by training loss: :func:`generator_scores`
 runs one replication of the evaluation protocol (:mod:`pipelines.evaluation`) on the ``val`` split
 with the trained evaluator; :func:`motionlcm_scores` is ``distill_lcm``'s sweep hook (its
-one-step FID and R@3) and :func:`emdm_scores` ``train_emdm``'s (its T-step FID and R@3). Imported
-only when sweeping, so the training stages do not depend on it.
+one-step FID and R@3), :func:`emdm_scores` ``train_emdm``'s (its T-step FID and R@3) and
+:func:`vae_scores` ``train_vae``'s (the MPJPE of its reconstructions of the validation motions,
+the VAE's metric in the results table). Imported only when sweeping, so the training stages do not
+depend on it.
 """
 
 from __future__ import annotations
@@ -12,17 +14,20 @@ from __future__ import annotations
 from dataclasses import replace
 from typing import Any
 
+import numpy as np
 import torch
 
+from data.motion_dataset import pad_motions
 from data.skeleton import get_skeleton
 from models.emdm import EMDMConfig, EMDMGenerator
 from models.generator import Generator
 from models.mld import MLDConfig, MLDDenoiser
+from models.vae import MotionVAE, MotionVAEConfig
 from pipelines.cli import artifacts_dir, repo_path
 from pipelines.emdm_family import EMDMGeneratorRow
-from pipelines.evaluation import EvalConfig, evaluate, load_evaluator, references
+from pipelines.evaluation import EvalConfig, denormalise, evaluate, load_evaluator, mpjpe_mm, references
 from pipelines.feature_store import FeatureStore
-from pipelines.mld_family import MotionLCMGenerator, load_mld, load_vae
+from pipelines.mld_family import MotionLCMGenerator, VAEReconstruction, load_mld, load_vae
 
 
 def generator_scores(params: dict[str, Any], generator: Generator, split: str = "val") -> dict[str, float]:
@@ -33,7 +38,7 @@ def generator_scores(params: dict[str, Any], generator: Generator, split: str = 
     cfg = replace(EvalConfig(**section), replications=1, mm_repeats=0, timing_sentences=1,
                   diversity_times=min(section["diversity_times"], len(items) - 1))
     embedder = load_evaluator(artifacts_dir(params) / "train_evaluator")
-    refs = references(items, embedder, cfg)
+    refs = references(items, embedder, cfg, split=split)
     row = evaluate(refs, items, store.mean, store.std, embedder, get_skeleton(params["data"]["skeleton"]), cfg,
                    [generator])[generator.name]
     return {f"{split}_FID": row["FID"], f"{split}_R_precision_top3": row["R_precision_top3"]}
@@ -60,3 +65,18 @@ def emdm_scores(params: dict[str, Any], loop_config: dict[str, Any], state: dict
                            params["sample"]["emdm_guidance"])
     with torch.inference_mode():
         return generator_scores(params, row)
+
+
+def vae_scores(params: dict[str, Any], loop_config: dict[str, Any], state: dict[str, Any]) -> dict[str, float]:
+    """A ``train_vae`` trial's VAE: ``val_MPJPE_mm``, the root-aligned joint error (mm) of its
+    reconstructions (posterior mean) of the whole validation motions, as the evaluation measures it."""
+    vae = MotionVAE(MotionVAEConfig(**loop_config["model"]))
+    vae.load_state_dict(state["models"]["vae"])
+    store = FeatureStore(repo_path(params, "features.out"))
+    items = store.split("val")
+    if not items:
+        raise ValueError(f"{store.path}: the val split is empty; a VAE sweep ranks trials on it")
+    lengths = np.array([item.length for item in items])
+    raw = pad_motions([item.features for item in items], lengths)
+    recon = VAEReconstruction(vae).reconstruct((raw - store.mean) / store.std, lengths)
+    return {"val_MPJPE_mm": mpjpe_mm(raw, denormalise(recon, store.mean, store.std), lengths, store.joints_num)}

@@ -7,10 +7,19 @@ space is ``sweep.<stage>`` and the settings ``sweep.settings`` in params (see
     python -m stages.sweep train_evaluator sweep.settings.num_samples=8 \\
         'sweep.train_evaluator.lr=loguniform(1e-4, 1e-2)' scale=smoke
 
-Writes ``artifacts/sweeps/<stage>/`` (results.parquet, results.md, best_params.yaml).
-Exit status: 0 when the sweep finished (failed trials are rows of the table), 1 when every
-trial failed or the sweep was interrupted (run the same command again to resume it), 2 on
-a usage or configuration error.
+Trials are ranked by the stage's validation metric (``train_vae``: ``val_MPJPE_mm``;
+``distill_lcm``, ``train_emdm``: ``val_FID``; ``train_evaluator``: its training loss) unless
+``sweep.settings.metric`` names another. Before any work the stage's params and inputs are
+checked and one trial must fit on the cluster. Writes ``artifacts/sweeps/<stage>/``
+(results.parquet, results.md, best_params.yaml).
+
+Exit status:
+
+- 0: the sweep finished (failed trials are rows of the table);
+- 1: every trial failed, the sweep was interrupted (run the same command again to resume
+  it), or an input is missing (e.g. no feature store: ``dvc repro extract_features``);
+- 2: a usage or configuration error, including a trial that cannot fit on the cluster
+  (``ray.num_workers x ray.cpus_per_worker`` CPUs).
 """
 
 from __future__ import annotations

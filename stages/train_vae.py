@@ -5,11 +5,14 @@ training motions of the feature store (normalised with its Mean/Std) through the
 smooth-L1 on features and on joints (``recover_from_ric``; global as MLD, or root-aligned with
 ``joint_space: root``) + KL weight 1e-4, AdamW, cosine schedule with warm-up, gradient clipping.
 Writes ``artifacts/train_vae/`` (model.pt, metrics.json, loss.csv/png).
+
+``python -m stages.sweep train_vae`` sweeps it (:func:`sweep_target`), ranking the trials by
+``val_MPJPE_mm``, the reconstruction error of the validation motions.
 """
 
 from __future__ import annotations
 
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import torch
 
@@ -19,7 +22,10 @@ from pipelines.cli import repo_path
 from pipelines.config import check_choice, check_fields, check_keys, check_number
 from pipelines.feature_store import FeatureStore
 from pipelines.runner import Components, StepContext, TrainSpec
-from pipelines.stage import TrainingStage, main
+from pipelines.stage import TrainingStage, loop_config, main
+
+if TYPE_CHECKING:
+    from pipelines.sweep import SweepTarget
 
 
 def dataset(config: dict) -> MotionTextDataset:
@@ -77,6 +83,22 @@ STAGE = TrainingStage(
     config=stage_config, inputs=("features_dir",), params=(SECTION, "features.out", "paths", "ray"),
     check=check_section,
 )
+
+
+def sweep_loop_config(params: dict[str, Any]) -> dict[str, Any]:
+    """A sweep trial's loop config (its values applied to ``params``, checked as the stage checks them)."""
+    check_section(params)
+    return loop_config(STAGE, params)
+
+
+def sweep_target(params: dict[str, Any]) -> SweepTarget:
+    """``python -m stages.sweep train_vae``: trials ranked by the validation MPJPE of their reconstructions."""
+    from pipelines.sweep import SweepTarget  # imports Ray Tune: only when sweeping
+    from pipelines.validation import vae_scores  # evaluation code: only when sweeping
+
+    return SweepTarget(stage="train_vae", spec=STAGE.spec, loop_config=sweep_loop_config, validate=vae_scores,
+                       metric="val_MPJPE_mm", mode="min")
+
 
 if __name__ == "__main__":
     main(STAGE)

@@ -22,8 +22,10 @@ from pipelines.evaluation import (
     crop_lengths,
     draw,
     evaluate,
+    load_references,
     physical,
     references,
+    save_references,
     time_generator,
 )
 
@@ -213,10 +215,21 @@ def test_pad_motions_zero_fills():
     assert out.shape == (2, 5, 2) and out[0, 3:].sum() == 0 and out.sum() == 16
 
 
-def test_too_few_test_items_is_a_clear_error(world):
+def test_a_group_larger_than_the_split_is_a_clear_error(world, tmp_path):
     codes, test, _ = world
-    with pytest.raises(ValueError, match="fewer than one R-precision group"):
+    expected = (f"evaluate.group_size={CFG.group_size} is larger than the {{split}} split (10 items): "
+                "R-precision needs one full group; set a smaller evaluate.group_size")
+    with pytest.raises(ValueError) as err:
         references(test[:10], StubEmbedder(codes), CFG)
+    assert str(err.value) == expected.format(split="test")
+    with pytest.raises(ValueError) as err:
+        references(test[:10], StubEmbedder(codes), CFG, split="val")
+    assert str(err.value) == expected.format(split="val")
+    path = tmp_path / "references.npz"
+    save_references(path, references(test, StubEmbedder(codes), CFG))
+    with pytest.raises(ValueError) as err:  # saved references read back for fewer items than a group
+        load_references(path, test[:10], CFG)
+    assert str(err.value) == expected.format(split="test")
 
 
 def test_mpjpe_is_root_aligned_and_in_millimetres():

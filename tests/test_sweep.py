@@ -15,6 +15,7 @@ import os
 import signal
 import sys
 import time
+from dataclasses import asdict
 from functools import partial
 from pathlib import Path
 from typing import Any
@@ -23,13 +24,15 @@ import numpy as np
 import pyarrow.parquet as pq
 import pytest
 import ray
+import torch
 import yaml
 from ray import tune
 from ray.util.placement_group import placement_group, remove_placement_group
+from torch.utils.data import TensorDataset
 
 from data.store import StoredItem, write_split
 from pipelines.config import compose_params
-from pipelines.runner import RayOptions, run_training
+from pipelines.runner import Components, LoopSettings, StepContext, TrainSpec, run_training
 from pipelines.sweep import (
     COMPLETED,
     ERROR,
@@ -41,6 +44,7 @@ from pipelines.sweep import (
     SweepFailed,
     SweepInterrupted,
     SweepSettings,
+    SweepTarget,
     apply_trial,
     best_row,
     check_outcome,
@@ -51,8 +55,10 @@ from pipelines.sweep import (
     orphaned_placement_groups,
     parse_dimension,
     parse_space,
+    ranking_settings,
     run_sweep,
     short_error,
+    trial_ray_options,
     trial_status,
 )
 
@@ -61,6 +67,62 @@ ray.cloudpickle.register_pickle_by_value(sys.modules[__name__])
 
 FIXTURES = Path(__file__).parent / "fixtures" / "humanml3d"
 STAGE = "train_evaluator"
+
+# --------------------------------------------------------------------------- a toy target
+
+
+def toy_build(cfg: dict) -> Components:
+    """One weight w, from 0, by SGD at the trial's ``lr``."""
+    w = torch.nn.Linear(1, 1, bias=False)
+    torch.nn.init.zeros_(w.weight)
+    return Components({"w": w}, {"sgd": torch.optim.SGD(w.parameters(), lr=cfg["lr"])})
+
+
+def toy_dataset(cfg: dict) -> TensorDataset:
+    return TensorDataset(torch.ones(8, 1))
+
+
+def toy_step(batch: Any, ctx: StepContext) -> dict[str, torch.Tensor]:
+    """Training loss (w - 1)^2: the larger lr, the lower."""
+    (x,) = batch
+    loss = ((ctx.models["w"](x) - 1.0) ** 2).mean()
+    ctx.update(loss)
+    return {"loss": loss.detach()}
+
+
+def toy_loop_config(params: dict) -> dict:
+    return asdict(LoopSettings.parse(params["toy"]["loop"], "toy.loop")) | {"lr": params["toy"]["lr"]}
+
+
+def toy_validate(params: dict, loop_config: dict, state: dict) -> dict[str, float]:
+    """Validation error (w + 1)^2: disagrees with the training loss (the smaller lr, the lower)."""
+    return {"val_error": (float(state["models"]["w"]["weight"].item()) + 1.0) ** 2}
+
+
+def toy_prerequisite(params: dict, work_dir: Path, storage: str) -> dict:
+    Path(params["toy"]["marker"]).touch()
+    return {}
+
+
+TOY_SPEC = TrainSpec(build=toy_build, dataset=toy_dataset, step=toy_step)
+
+
+def toy_target(params: dict) -> SweepTarget:
+    return SweepTarget(stage="toy", spec=TOY_SPEC, loop_config=toy_loop_config, prerequisite=toy_prerequisite,
+                       validate=toy_validate, metric="val_error", mode="min")
+
+
+def toy_params(tmp: Path) -> dict[str, Any]:
+    """Two trials (lr 0.001 and 0.1, 20 steps, one at a time) of 1 worker x 1 CPU."""
+    loop = {"seed": 0, "batch_size": 8, "max_steps": 20, "grad_clip": 0.0, "lr_schedule": "constant",
+            "warmup_steps": 0, "min_lr_ratio": 0.0, "log_every": 1000, "num_data_workers": 0, "length_buckets": 0}
+    return {
+        "toy": {"lr": 0.01, "marker": str(tmp / "prerequisite-ran"), "loop": loop},
+        "paths": {"artifacts": str(tmp / "artifacts"), "ray_storage": str(tmp / "ray")},
+        "ray": {"num_workers": 1, "cpus_per_worker": 1, "max_failures": 0, "checkpoint_every": 1000},
+        "sweep": {"settings": {"num_samples": 1, "scheduler": "fifo", "max_concurrent_trials": 1},
+                  "toy": {"lr": "grid([0.001, 0.1])"}},
+    }
 
 # --------------------------------------------------------------------------- parser
 
@@ -157,31 +219,71 @@ def test_settings_validation() -> None:
         SweepSettings.from_dict({"mode": "low"})
 
 
-def test_committed_params_declare_a_valid_evaluator_sweep() -> None:
+def test_committed_params_declare_valid_sweeps_ranked_by_validation() -> None:
+    import stages.distill_lcm
+    import stages.train_emdm
+    import stages.train_vae
+
     params = compose_params()
-    SweepSettings.from_dict(params["sweep"]["settings"])
-    assert parse_space(STAGE, params["sweep"][STAGE], params[STAGE])
+    settings = SweepSettings.from_dict(params["sweep"]["settings"])
+    assert (settings.metric, settings.mode) == (None, None)  # each stage's own
+    for stage in (STAGE, "train_vae", "distill_lcm", "train_emdm"):
+        assert parse_space(stage, params["sweep"][stage], params[stage])
+    for module, metric in ((stages.train_vae, "val_MPJPE_mm"), (stages.distill_lcm, "val_FID"),
+                           (stages.train_emdm, "val_FID")):
+        target = module.sweep_target(params)
+        assert target.validate is not None and (target.metric, target.mode) == (metric, "min")
+    assert "margin" not in parse_space(STAGE, params["sweep"][STAGE], params[STAGE])  # loss cannot rank margins
 
 
-@pytest.mark.parametrize(("cluster", "workers", "cpw", "trial", "gpw", "expected"), [
-    ({"CPU": 4}, 1, 1, 0.01, 0, 3),      # 4 / 1.01 -> 3 (the driver's 0.01 CPU counts)
-    ({"CPU": 4}, 1, 1, 0.0, 0, 4),
-    ({"CPU": 2}, 2, 0.5, 0.01, 0, 1),    # 2 / 1.01
-    ({"CPU": 16}, 2, 1, 1, 0, 5),        # the 1-CPU-per-trial default: 16 / 3
-    ({"CPU": 16}, 2, 2, 0.01, 0, 3),
-    ({"CPU": 3.03}, 1, 1, 0.01, 0, 3),   # exact fit despite float rounding
-    ({"CPU": 64, "GPU": 4}, 2, 1, 0.01, 1, 2),  # GPUs bind first
+@pytest.mark.parametrize(("cluster", "workers", "cpw", "gpw", "expected"), [
+    ({"CPU": 4}, 1, 1, 0, 4),
+    ({"CPU": 2}, 1, 2, 0, 1),           # the defaults on a 2-core laptop
+    ({"CPU": 2}, 2, 0.5, 0, 2),
+    ({"CPU": 16}, 2, 2, 0, 4),
+    ({"CPU": 3.0000000001}, 1, 1, 0, 3),
+    ({"CPU": 2.9999999999}, 1, 1, 0, 3),  # exact fit despite float rounding
+    ({"CPU": 64, "GPU": 4}, 2, 1, 1, 2),  # GPUs bind first
 ])
-def test_max_concurrent_fits_the_cluster(cluster: dict, workers: int, cpw: float, trial: float, gpw: float,
-                                         expected: int) -> None:
-    assert fit_concurrency(cluster, workers, cpw, trial, gpw) == expected
+def test_max_concurrent_fits_the_cluster(cluster: dict, workers: int, cpw: float, gpw: float, expected: int) -> None:
+    assert fit_concurrency(cluster, workers, cpw, gpw) == expected
 
 
-def test_a_trial_that_can_never_fit_is_an_error() -> None:
-    with pytest.raises(ValueError, match="needs 2.01 CPUs"):
-        fit_concurrency({"CPU": 2}, 2, 1, 0.01)
-    with pytest.raises(ValueError, match="GPUs"):
-        fit_concurrency({"CPU": 8}, 1, 1, 0.01, gpus_per_worker=1)
+def test_a_trial_that_can_never_fit_is_a_config_error() -> None:
+    with pytest.raises(SweepConfigError) as err:
+        fit_concurrency({"CPU": 2}, 2, 2)
+    assert str(err.value) == ("one trial needs 4 CPUs (ray.num_workers=2 x ray.cpus_per_worker=2) and 0 GPUs; "
+                              "the cluster has 2 CPUs and 0 GPUs")
+    with pytest.raises(SweepConfigError, match="and 1 GPUs; the cluster has 8 CPUs and 0 GPUs"):
+        fit_concurrency({"CPU": 8}, 1, 1, gpus_per_worker=1)
+
+
+def test_the_trial_driver_shares_its_workers_cpus() -> None:
+    """A trial takes num_workers x cpus_per_worker in all: 2-CPU trials fit a 2-CPU machine."""
+    settings = SweepSettings(trial_cpus=0.01, report_every=7)
+    opts = trial_ray_options({"ray": {"num_workers": 1, "cpus_per_worker": 2}}, settings)
+    assert opts.cpus_per_worker == pytest.approx(1.99) and opts.report_every == 7
+    assert opts.num_workers * opts.cpus_per_worker + settings.trial_cpus == pytest.approx(2.0)
+    assert round(opts.cpus_per_worker) == 2  # the workers' torch threads (pipelines.runner._run_info)
+    two = trial_ray_options({"ray": {"num_workers": 2, "cpus_per_worker": 1}}, settings)
+    assert two.cpus_per_worker == pytest.approx(0.995)
+    in_process = trial_ray_options({"ray": {"num_workers": 0, "cpus_per_worker": 2}}, settings)
+    assert in_process.num_workers == 1 and not in_process.in_process
+    with pytest.raises(SweepConfigError) as err:
+        trial_ray_options({"ray": {"num_workers": 1, "cpus_per_worker": 0.5}}, SweepSettings(trial_cpus=0.5))
+    assert str(err.value) == ("sweep.settings.trial_cpus=0.5 must be smaller than ray.cpus_per_worker=0.5 "
+                              "(it comes out of the workers' share)")
+
+
+def test_trials_are_ranked_by_the_targets_metric_unless_settings_name_one() -> None:
+    target = SweepTarget(stage="toy", spec=TOY_SPEC, loop_config=toy_loop_config, validate=toy_validate,
+                         metric="val_error", mode="min")
+    resolved = ranking_settings(SweepSettings(), target)
+    assert (resolved.metric, resolved.mode) == ("val_error", "min")
+    chosen = ranking_settings(SweepSettings(metric="loss", mode="max"), target)
+    assert (chosen.metric, chosen.mode) == ("loss", "max")
+    plain = SweepTarget(stage="toy", spec=TOY_SPEC, loop_config=toy_loop_config)
+    assert (ranking_settings(SweepSettings(), plain).metric, plain.mode) == ("loss", "min")
 
 
 def test_experiment_name_is_stable_and_tracks_space_settings_and_params() -> None:
@@ -305,9 +407,13 @@ class InterruptOnce(tune.Callback):
 
 
 def test_auto_concurrency_on_the_test_cluster(ray_cluster: Any) -> None:
-    opts = RayOptions(num_workers=1, cpus_per_worker=1)
-    assert max_concurrent(SweepSettings(), opts) == 3  # 2 nodes x 2 CPUs / (1 + 0.01)
+    settings = SweepSettings()
+    opts = trial_ray_options({"ray": {"num_workers": 1, "cpus_per_worker": 1}}, settings)
+    assert max_concurrent(settings, opts) == 4  # 2 nodes x 2 CPUs / 1 (the driver's 0.01 included)
     assert max_concurrent(SweepSettings(max_concurrent_trials=2), opts) == 2
+    big = trial_ray_options({"ray": {"num_workers": 1, "cpus_per_worker": 8}}, settings)
+    with pytest.raises(SweepConfigError, match="the cluster has 4 CPUs"):
+        max_concurrent(SweepSettings(max_concurrent_trials=1), big)  # checked whatever the setting
 
 
 def cpus_freed(cluster: Any, timeout: float = 30.0) -> bool:
@@ -382,3 +488,76 @@ def test_interrupted_smoke_sweep_resumes_and_writes_results(ray_cluster: Any, tm
     rows = [line for line in (out / "results.md").read_text().splitlines() if line.startswith("| ")]
     assert len(rows) == 5 and winner["trial_id"] in rows[1] and "Invalid learning rate" in rows[-1]
     assert cpus_freed(ray_cluster), "stopped or interrupted trials left resources behind"
+
+
+# --------------------------------------------------------------------------- checks before any work
+
+
+def _sweep_main(monkeypatch: pytest.MonkeyPatch, params: dict[str, Any], stage: str,
+                target: Any = None) -> SystemExit:
+    """``stages.sweep.main([stage])`` on ``params`` (and ``target``, else the stage's own); its SystemExit."""
+    from stages import sweep
+
+    monkeypatch.setattr(sweep, "load_params", lambda argv: params)
+    if target is not None:
+        monkeypatch.setattr(sweep, "load_target", lambda name, p: target(p))
+    with pytest.raises(SystemExit) as exc:
+        sweep.main([stage])
+    return exc.value
+
+
+def _no_ray(*args: Any, **kwargs: Any) -> None:
+    raise AssertionError("Ray was started before the checks")
+
+
+def test_bad_stage_params_exit_2_before_any_work(monkeypatch: pytest.MonkeyPatch, tmp_path: Path,
+                                                 capsys: pytest.CaptureFixture) -> None:
+    import pipelines.sweep
+
+    monkeypatch.setattr(pipelines.sweep, "ensure_ray", _no_ray)
+    params = compose_params(["scale=smoke"])
+    params["train_vae"]["joint_space"] = "local"
+    exit_ = _sweep_main(monkeypatch, params, "train_vae")
+    assert exit_.code == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("sweep train_vae: train_vae.joint_space") and "local" in err and "\n" not in err
+
+
+def test_missing_feature_store_exits_1_before_any_work(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
+    import pipelines.sweep
+
+    monkeypatch.setattr(pipelines.sweep, "ensure_ray", _no_ray)
+    params = compose_params(["scale=smoke"])
+    params["features"]["out"] = str(tmp_path / "no-store")
+    exit_ = _sweep_main(monkeypatch, params, "train_vae")
+    assert isinstance(exit_.code, str) and exit_.code.startswith("sweep train_vae: ")
+    assert str(tmp_path / "no-store") in exit_.code
+
+
+def test_a_trial_too_big_for_the_cluster_exits_2_before_the_prerequisite(
+        ray_cluster: Any, monkeypatch: pytest.MonkeyPatch, tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    params = toy_params(tmp_path)
+    params["ray"]["cpus_per_worker"] = 8
+    exit_ = _sweep_main(monkeypatch, params, "toy", toy_target)
+    assert exit_.code == 2
+    assert capsys.readouterr().err == ("sweep toy: one trial needs 8 CPUs (ray.num_workers=1 x ray.cpus_per_worker=8) "
+                                       "and 0 GPUs; the cluster has 4 CPUs and 0 GPUs\n")
+    assert not Path(params["toy"]["marker"]).exists()
+
+
+def test_best_params_are_chosen_by_the_validation_metric(ray_cluster: Any, tmp_path: Path) -> None:
+    """The toy's training loss prefers lr 0.1, its validation error lr 0.001: the sweep picks 0.001 by default,
+    0.1 when told to rank by the training loss (reported with the validation metrics)."""
+    params = toy_params(tmp_path)
+    result = run_sweep(toy_target(params), params, tmp_path)
+    assert result.metric == "val_error" and Path(params["toy"]["marker"]).exists()
+    best = yaml.safe_load((result.out_dir / "best_params.yaml").read_text())
+    assert best == {"toy": {"lr": 0.001}}
+    errors = {row["lr"]: row["val_error"] for row in pq.read_table(result.out_dir / "results.parquet").to_pylist()}
+    assert errors[0.001] < 1.1 < 3.0 < errors[0.1]  # w ~ 0.04 against w ~ 1
+    assert "best val_error (min)" in (result.out_dir / "results.md").read_text()
+
+    params["sweep"]["settings"]["metric"] = "loss"
+    by_loss = run_sweep(toy_target(params), params, tmp_path / "by-loss")
+    assert yaml.safe_load((by_loss.out_dir / "best_params.yaml").read_text()) == {"toy": {"lr": 0.1}}
+    assert cpus_freed(ray_cluster)
