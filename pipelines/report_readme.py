@@ -124,7 +124,7 @@ def table_structure(text: str) -> list[tuple[str, list[str]]]:
         if line.startswith("|") and not previous.startswith("|"):
             tables.append((line, []))
         elif line.startswith("|") and not line.startswith("|---"):
-            tables[-1][1].append(re.sub(r" \(†\d+\)$", "", line.split("|")[1].strip()))
+            tables[-1][1].append(re.sub(r" \(†\d+(, \d+ rep\.)?\)$", "", line.split("|")[1].strip()))
         previous = line
     return tables
 
