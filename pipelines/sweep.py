@@ -232,12 +232,28 @@ def _has_key(section: Mapping[str, Any], dotted: str) -> bool:
     return True
 
 
+def flatten_space(entries: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:
+    """``{"loop": {"max_steps": 400}, "lr": spec}`` -> ``{"loop.max_steps": 400, "lr": spec}``."""
+    flat: dict[str, Any] = {}
+    for key, spec in entries.items():
+        if isinstance(spec, Mapping):
+            flat |= flatten_space(spec, f"{prefix}{key}.")
+        else:
+            flat[f"{prefix}{key}"] = spec
+    return flat
+
+
 def parse_space(stage: str, entries: Mapping[str, Any] | None, stage_params: Mapping[str, Any]) -> dict[str, Dimension]:
-    """Parse ``sweep.<stage>``: every key must be a (dotted) key of ``params[<stage>]``; null entries are dropped."""
+    """Parse ``sweep.<stage>``: every key must be a key of ``params[<stage>]``; null entries are dropped.
+
+    A key of a group is written nested, as in the params (``loop: {max_steps: 400}``), so that
+    ``sweep.<stage>.loop.max_steps=...`` overrides it from the command line; a dotted key
+    (``loop.max_steps: 400``) means the same. The space's keys are dotted.
+    """
     if not isinstance(entries, Mapping):
         raise SweepConfigError(f"sweep.{stage}: expected a mapping of {stage} keys to dimensions, got {entries!r}")
     space = {}
-    for key, spec in entries.items():
+    for key, spec in flatten_space(entries).items():
         name = f"sweep.{stage}.{key}"
         if not _has_key(stage_params, key):
             raise SweepConfigError(f"{name}: {key!r} is not a key of the {stage!r} params")

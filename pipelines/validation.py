@@ -5,8 +5,9 @@ runs one replication of the evaluation protocol (:mod:`pipelines.evaluation`) on
 with the trained evaluator; :func:`motionlcm_scores` is ``distill_lcm``'s sweep hook (its
 one-step FID and R@3), :func:`emdm_scores` ``train_emdm``'s (its T-step FID and R@3) and
 :func:`vae_scores` ``train_vae``'s (the MPJPE of its reconstructions of the validation motions,
-the VAE's metric in the results table). Imported only when sweeping, so the training stages do not
-depend on it.
+the VAE's metric in the results table) and :func:`evaluator_scores` ``train_evaluator``'s (its own
+text-to-motion retrieval on the validation split). Imported only when sweeping, so the training
+stages do not depend on it.
 """
 
 from __future__ import annotations
@@ -19,13 +20,27 @@ import torch
 
 from data.motion_dataset import pad_motions
 from data.skeleton import get_skeleton
+from data.vocab import WordVocab
+from models import metrics as M
 from models.emdm import EMDMConfig, EMDMGenerator
+from models.evaluator import EvaluatorConfig
 from models.generator import Generator
 from models.mld import MLDConfig, MLDDenoiser
 from models.vae import MotionVAE, MotionVAEConfig
 from pipelines.cli import artifacts_dir, repo_path
 from pipelines.emdm_family import EMDMGeneratorRow
-from pipelines.evaluation import EvalConfig, denormalise, evaluate, load_evaluator, mpjpe_mm, references
+from pipelines.evaluation import (
+    EvalConfig,
+    MotionEmbedder,
+    build_evaluator,
+    check_group_size,
+    denormalise,
+    draw,
+    evaluate,
+    load_evaluator,
+    mpjpe_mm,
+    references,
+)
 from pipelines.feature_store import FeatureStore
 from pipelines.mld_family import MotionLCMGenerator, VAEReconstruction, load_mld, load_vae
 
@@ -80,3 +95,24 @@ def vae_scores(params: dict[str, Any], loop_config: dict[str, Any], state: dict[
     raw = pad_motions([item.features for item in items], lengths)
     recon = VAEReconstruction(vae).reconstruct((raw - store.mean) / store.std, lengths)
     return {"val_MPJPE_mm": mpjpe_mm(raw, denormalise(recon, store.mean, store.std), lengths, store.joints_num)}
+
+
+def evaluator_scores(params: dict[str, Any], loop_config: dict[str, Any], state: dict[str, Any]) -> dict[str, float]:
+    """A ``train_evaluator`` trial's matching model: ``val_R_precision_top1`` and ``val_R_precision_top3``
+    of the validation captions against their own motions.
+
+    The protocol's first step on the ``val`` split (one caption and one crop per motion, seeded by
+    ``evaluate.seed``), then R-precision in groups of ``evaluate.group_size``: how often a caption
+    ranks its own motion first (top 3) among the group. A rank, so it compares trials whose
+    margins give their embeddings different scales, which their training losses cannot.
+    """
+    evaluator = build_evaluator(EvaluatorConfig.from_dict(loop_config["model"]), loop_config["mean"],
+                                loop_config["std"])
+    evaluator.load_state_dict(state["models"]["evaluator"])
+    embedder = MotionEmbedder(evaluator, WordVocab.from_dict(loop_config["vocab"]), loop_config["max_words"])
+    items = FeatureStore(repo_path(params, "features.out")).split("val")
+    cfg = EvalConfig(**{key: value for key, value in params["evaluate"].items() if key != "samples"})
+    check_group_size(len(items), cfg, split="val")
+    d = draw(items, np.random.default_rng([cfg.seed, 0]), cfg.unit_length)
+    top = M.r_precision(embedder.texts(d.tokens), embedder.motions(d.real, d.lengths), cfg.group_size, top_k=3)
+    return {"val_R_precision_top1": float(top[0]), "val_R_precision_top3": float(top[2])}

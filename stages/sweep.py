@@ -8,7 +8,7 @@ space is ``sweep.<stage>`` and the settings ``sweep.settings`` in params (see
         'sweep.train_evaluator.lr=loguniform(1e-4, 1e-2)' scale=smoke
 
 Trials are ranked by the stage's validation metric (``train_vae``: ``val_MPJPE_mm``;
-``distill_lcm``, ``train_emdm``: ``val_FID``; ``train_evaluator``: its training loss) unless
+``distill_lcm``, ``train_emdm``: ``val_FID``; ``train_evaluator``: ``val_R_precision_top3``) unless
 ``sweep.settings.metric`` names another. Before any work the stage's params and inputs are
 checked and one trial must fit on the cluster. Writes ``artifacts/sweeps/<stage>/``
 (results.parquet, results.md, best_params.yaml).

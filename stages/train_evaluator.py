@@ -177,11 +177,14 @@ def matching_loop_config(params: dict[str, Any]) -> dict[str, Any]:
 
 
 def sweep_target(params: dict[str, Any]) -> SweepTarget:
-    """``python -m stages.sweep train_evaluator``: trials vary the matching run on one movement encoder."""
+    """``python -m stages.sweep train_evaluator``: trials vary the matching run on one movement encoder,
+    ranked by their own validation R-precision (top 3)."""
     from pipelines.sweep import SweepTarget  # imports Ray Tune: only when sweeping
+    from pipelines.validation import evaluator_scores  # evaluation code: only when sweeping
 
     return SweepTarget(stage="train_evaluator", spec=MATCHING.spec, loop_config=matching_loop_config,
-                       prerequisite=movement_prerequisite)
+                       prerequisite=movement_prerequisite, validate=evaluator_scores,
+                       metric="val_R_precision_top3", mode="max")
 
 
 def main(argv: Sequence[str] | None = None) -> None:

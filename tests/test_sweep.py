@@ -15,7 +15,7 @@ import os
 import signal
 import sys
 import time
-from dataclasses import asdict
+from dataclasses import asdict, replace
 from functools import partial
 from pathlib import Path
 from typing import Any
@@ -31,7 +31,7 @@ from ray.util.placement_group import placement_group, remove_placement_group
 from torch.utils.data import TensorDataset
 
 from data.store import StoredItem, write_split
-from pipelines.config import compose_params
+from pipelines.config import apply_overrides, compose_params
 from pipelines.runner import Components, LoopSettings, StepContext, TrainSpec, run_training
 from pipelines.sweep import (
     COMPLETED,
@@ -222,6 +222,7 @@ def test_settings_validation() -> None:
 def test_committed_params_declare_valid_sweeps_ranked_by_validation() -> None:
     import stages.distill_lcm
     import stages.train_emdm
+    import stages.train_evaluator
     import stages.train_vae
 
     params = compose_params()
@@ -229,11 +230,30 @@ def test_committed_params_declare_valid_sweeps_ranked_by_validation() -> None:
     assert (settings.metric, settings.mode) == (None, None)  # each stage's own
     for stage in (STAGE, "train_vae", "distill_lcm", "train_emdm"):
         assert parse_space(stage, params["sweep"][stage], params[stage])
-    for module, metric in ((stages.train_vae, "val_MPJPE_mm"), (stages.distill_lcm, "val_FID"),
-                           (stages.train_emdm, "val_FID")):
+    for module, metric, mode in ((stages.train_vae, "val_MPJPE_mm", "min"), (stages.distill_lcm, "val_FID", "min"),
+                                 (stages.train_emdm, "val_FID", "min"),
+                                 (stages.train_evaluator, "val_R_precision_top3", "max")):
         target = module.sweep_target(params)
-        assert target.validate is not None and (target.metric, target.mode) == (metric, "min")
-    assert "margin" not in parse_space(STAGE, params["sweep"][STAGE], params[STAGE])  # loss cannot rank margins
+        assert target.validate is not None and (target.metric, target.mode) == (metric, mode)
+
+
+def test_nested_space_entries_are_dotted_keys_and_overridable() -> None:
+    """``loop: {max_steps: 500}`` is the space key ``loop.max_steps``; the command line reaches it."""
+    grouped = {"lr": 1e-3, "loop": {"batch_size": 32, "max_steps": 100}}
+    nested = {"lr": "grid([0.1, 0.2])", "loop": {"max_steps": 500, "batch_size": None}}
+    space = parse_space("s", nested, grouped)
+    assert space == parse_space("s", {"lr": "grid([0.1, 0.2])", "loop.max_steps": 500}, grouped)
+    assert space == {"lr": Dimension("grid", ([0.1, 0.2],)), "loop.max_steps": Dimension("fixed", (500,))}
+    with pytest.raises(SweepConfigError, match="'loop.steps' is not a key"):
+        parse_space("s", {"lr": "uniform(0.1, 1)", "loop": {"steps": 5}}, grouped)
+    params = apply_overrides(compose_params(), ["sweep.train_emdm.loop.max_steps=500",
+                                                "sweep.train_emdm.num_steps=grid([1, 10])"])
+    space = parse_space("train_emdm", params["sweep"]["train_emdm"], params["train_emdm"])
+    assert space["loop.max_steps"] == Dimension("fixed", (500,))
+    assert space["num_steps"] == Dimension("grid", ([1, 10],))
+    composed = compose_params(["scale=smoke", "sweep.train_vae.loop.max_steps=7"])  # the Hydra path (dvc exp -S)
+    assert parse_space("train_vae", composed["sweep"]["train_vae"], composed["train_vae"])["loop.max_steps"] == \
+        Dimension("fixed", (7,))
 
 
 @pytest.mark.parametrize(("cluster", "workers", "cpw", "gpw", "expected"), [
@@ -384,6 +404,33 @@ def smoke_params(tmp: Path) -> dict[str, Any]:
     return params
 
 
+def test_evaluator_scores_rank_the_trials_own_validation_retrieval(tmp_path: Path) -> None:
+    """``evaluator_scores`` rebuilds a trial's evaluator from its final state and scores its retrieval on
+    the val split: reproducible, top 1 <= top 3, and a group larger than the split is an error naming it."""
+    from models.evaluator import EvaluatorConfig
+    from pipelines.evaluation import build_evaluator
+    from pipelines.validation import evaluator_scores
+    from stages.train_evaluator import matching_config
+
+    params = smoke_params(tmp_path)
+    store = Path(params["features"]["out"])
+    (store / "val.parquet").write_bytes((store / "train.parquet").read_bytes())  # 10 items
+    params["evaluate"]["group_size"] = 5
+    config = matching_config(params)
+    torch.manual_seed(0)
+    evaluator = build_evaluator(EvaluatorConfig.from_dict(config["model"]), config["mean"], config["std"])
+    state = {"models": {"evaluator": evaluator.state_dict()}}
+    scores = evaluator_scores(params, config, state)
+    assert set(scores) == {"val_R_precision_top1", "val_R_precision_top3"}
+    assert scores == evaluator_scores(params, config, state)
+    assert 0.0 <= scores["val_R_precision_top1"] <= scores["val_R_precision_top3"] <= 1.0
+    with pytest.raises(RuntimeError, match="state_dict"):  # the trial's own weights, not a fresh model
+        evaluator_scores(params, config, {"models": {"evaluator": {}}})
+    params["evaluate"]["group_size"] = 32
+    with pytest.raises(ValueError, match=r"larger than the val split \(10 items\)"):
+        evaluator_scores(params, config, state)
+
+
 def pretrain_movement_in_process(params: dict[str, Any]) -> None:
     """Write the sweep's prerequisite in-process (1-2 s instead of a Ray Train run); the sweep reuses it."""
     from pipelines.stage import loop_config
@@ -456,12 +503,17 @@ def test_janitor_removes_only_placement_groups_of_dead_actors(ray_cluster: Any) 
 def test_interrupted_smoke_sweep_resumes_and_writes_results(ray_cluster: Any, tmp_path: Path,
                                                             monkeypatch: pytest.MonkeyPatch,
                                                             capsys: pytest.CaptureFixture) -> None:
+    import stages.train_evaluator
     from stages import sweep
 
     params = smoke_params(tmp_path)
     monkeypatch.setenv("RAY_TRAIN_ENABLE_PREEMPTION_WATCHER", "0")  # one process less per trial (Tune propagates it)
     pretrain_movement_in_process(params)
     monkeypatch.setattr(sweep, "load_params", lambda argv: params)
+    # Ranked by the training loss reported every 2 steps, so that ASHA has rungs to stop a trial at
+    # (a validation metric is reported once, after training); validation ranking has its own tests.
+    by_loss = partial(replace, validate=None, metric="loss", mode="min")
+    monkeypatch.setattr(sweep, "load_target", lambda name, p: by_loss(stages.train_evaluator.sweep_target(p)))
     monkeypatch.setattr(sweep, "run_sweep", partial(run_sweep, callbacks=[InterruptOnce(tmp_path / "interrupted")]))
     out = tmp_path / "artifacts" / "sweeps" / STAGE
 
