@@ -142,6 +142,8 @@ def _setup_axes(ax: Axes, camera: Camera, center: np.ndarray, radius: float, hei
     ax.set_ylim(y0, y1)
     ax.set_aspect("equal")
     ax.axis("off")
+    ax.xaxis.set_visible(False)  # else every draw lays out the hidden ticks to place the title
+    ax.yaxis.set_visible(False)
 
 
 def _title(ax: Axes, caption: str | None, width: int, size: float) -> None:
