@@ -27,6 +27,7 @@ from matplotlib.animation import FFMpegWriter
 from matplotlib.axes import Axes
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
+from matplotlib.text import Text
 from PIL import Image
 
 from data.skeleton import HUMANML3D, Skeleton
@@ -146,9 +147,10 @@ def _setup_axes(ax: Axes, camera: Camera, center: np.ndarray, radius: float, hei
     ax.yaxis.set_visible(False)
 
 
-def _title(ax: Axes, caption: str | None, width: int, size: float) -> None:
-    if caption:
-        ax.set_title("\n".join(textwrap.wrap(caption, width, max_lines=3, placeholder=" ...")), fontsize=size)
+def _title(ax: Axes, caption: str | None, width: int, size: float) -> Text | None:
+    if not caption:
+        return None
+    return ax.set_title("\n".join(textwrap.wrap(caption, width, max_lines=3, placeholder=" ...")), fontsize=size)
 
 
 def facing_azimuth(joints: np.ndarray, skeleton: Skeleton = HUMANML3D, offset: float = 35.0) -> float:
@@ -158,9 +160,13 @@ def facing_azimuth(joints: np.ndarray, skeleton: Skeleton = HUMANML3D, offset: f
     return float(np.degrees(np.arctan2(-left[2], left[0]))) + offset
 
 
+#: The animation's axes take the figure's lower part; the caption sits above them.
+AXES_TOP = 0.88
+
+
 def _frame_figure(size: float, dpi: int) -> tuple[Figure, Axes]:
     fig = Figure(figsize=(size, size), dpi=dpi)
-    ax = fig.add_axes((0.0, 0.0, 1.0, 0.88))
+    ax = fig.add_axes((0.0, 0.0, 1.0, AXES_TOP))
     return fig, ax
 
 
@@ -193,6 +199,9 @@ def render_frames(joints: np.ndarray, caption: str | None = None, skeleton: Skel
     The camera follows the root; given a ``target_path`` (T, 3), drawn on the floor, it stays
     still, framing the target and the root's path (see :func:`_view`). The floor grid and the
     paths are drawn once and the pose lines are updated in place, so a frame costs one canvas draw.
+    The caption above the axes (where nothing else is drawn: the axes clip their artists, and the
+    orthographic camera keeps their box fixed) is drawn in the first frame only and its pixels
+    are copied into the others.
     """
     joints = _as_joints(joints)
     target = _as_target(target_path)
@@ -208,9 +217,9 @@ def render_frames(joints: np.ndarray, caption: str | None = None, skeleton: Skel
         _draw_target(ax, camera, target)
     _draw_trajectory(ax, camera, joints)
     lines = _draw_pose(ax, camera, joints[0], skeleton)
-    _title(ax, caption, 40, 8)
+    title = _title(ax, caption, 40, 8)
     clock = ax.text(0.02, 0.02, "", transform=ax.transAxes, fontsize=7)
-    images = []
+    images, header = [], None
     for t in range(0, len(joints), stride):
         for line, chain in zip(lines, skeleton.kinematic_chain, strict=True):
             xy = camera.project(joints[t, list(chain)])
@@ -220,7 +229,14 @@ def render_frames(joints: np.ndarray, caption: str | None = None, skeleton: Skel
         ax.set_ylim(y0, y1)
         clock.set_text(f"{t / skeleton.fps:5.2f}s")  # also keeps Pillow from merging still frames
         canvas.draw()
-        images.append(Image.fromarray(np.asarray(canvas.buffer_rgba())[..., :3].copy()))
+        frame = np.asarray(canvas.buffer_rgba())[..., :3].copy()
+        if header is None:  # the axes' drawn top: "equal" aspect shrinks them below AXES_TOP
+            header = frame[: int(len(frame) * (1.0 - ax.get_position().y1))].copy()
+            if title is not None:
+                title.set_visible(False)
+        else:
+            frame[: len(header)] = header
+        images.append(Image.fromarray(frame))
     return images
 
 

@@ -9,6 +9,7 @@ import pytest
 from PIL import Image
 
 from data.render import (
+    AXES_TOP,
     TARGET_COLOR,
     Camera,
     _limits,
@@ -16,6 +17,7 @@ from data.render import (
     contact_sheet,
     joints_of,
     render_animation,
+    render_frames,
     render_strip,
 )
 from data.skeleton import HUMANML3D
@@ -47,6 +49,22 @@ def test_gif_has_one_frame_per_stride_and_shows_the_figure(tmp_path, motion):
             assert _is_drawn(frame)
             firsts.append(np.asarray(frame))
     assert not np.array_equal(firsts[0], firsts[1])  # it moves
+
+
+def test_the_caption_is_drawn_once_and_the_same_in_every_frame(motion):
+    """The caption's pixels (above the axes) are the first frame's in every frame; below it each frame
+    is exactly the frame drawn without a caption."""
+    captioned = [np.asarray(image) for image in render_frames(motion.joints, "a person walks forward", stride=20)]
+    plain = [np.asarray(image) for image in render_frames(motion.joints, None, stride=20)]
+    drawn = np.flatnonzero((np.stack(plain) < 250).any(axis=(0, 2, 3)))  # rows any frame draws on
+    rows = drawn[0]  # the caption's band: above everything the frames draw
+    assert rows >= captioned[0].shape[0] * (1.0 - AXES_TOP)
+    header = captioned[0][:rows]
+    assert (header < 128).any()  # the caption is there
+    assert len(captioned) == len(plain) > 2
+    for with_caption, without in zip(captioned, plain, strict=True):
+        np.testing.assert_array_equal(with_caption[:rows], header)
+        np.testing.assert_array_equal(with_caption[rows:], without[rows:])
 
 
 def test_mp4_needs_ffmpeg(tmp_path, motion):
