@@ -451,6 +451,34 @@ def pair_cosine(gallery_emb: np.ndarray, pairs: int = 20000, seed: int = 0) -> f
     return float(np.einsum("ij,ij->i", g[a], g[b]).mean())
 
 
+def mcnemar(base: Sequence[float], other: Sequence[float]) -> tuple[int, int, float]:
+    """Paired comparison of per-query scores (a score above 0.5 is right): (queries only ``base`` gets
+    right, queries only ``other`` gets right, exact two-sided binomial p of that split)."""
+    from math import comb
+
+    a = np.asarray(base) > 0.5
+    b = np.asarray(other) > 0.5
+    only_base, only_other = int((a & ~b).sum()), int((~a & b).sum())
+    n, k = only_base + only_other, min(only_base, only_other)
+    p = min(1.0, 2 * sum(comb(n, i) for i in range(k + 1)) / 2**n) if n else 1.0
+    return only_base, only_other, p
+
+
+def paired_lines(results: Sequence[Result]) -> list[str]:
+    """For each encoder after the first: its paired comparison with the first on nn and centroid hits."""
+    if not results:
+        return []
+    base = results[0]
+    lines = []
+    for r in results[1:]:
+        parts = []
+        for key in ("nn", "centroid"):
+            b, o, p = mcnemar([q[key] for q in base.details["per_query"]], [q[key] for q in r.details["per_query"]])
+            parts.append(f"{key}: {b} queries only {base.name} gets right, {o} only {r.name}, p = {p:.3f}")
+        lines.append(f"{r.name} vs {base.name}: " + "; ".join(parts))
+    return lines
+
+
 @dataclass
 class Result:
     """One encoder's scores (see the module docstring)."""
@@ -805,6 +833,9 @@ def main(argv: Sequence[str] | None = None) -> list[Result]:
                 print(f"  {c['group']:>5} {c['score']:.1f}  {c['text']!r}")
     print()
     print(format_table(results))
+    print()
+    for line in paired_lines(results):
+        print(line)
     if args.json is not None:
         from dataclasses import asdict
 
@@ -812,7 +843,7 @@ def main(argv: Sequence[str] | None = None) -> list[Result]:
         args.json.write_text(json.dumps({
             "cpu": cpu_model(), "threads": args.threads, "gallery_captions": len(gallery),
             "single_action_captions": single, "gallery_words": len(vocab), "queries": len(QUERIES),
-            "contrasts": len(CONTRASTS), "results": [asdict(r) for r in results],
+            "contrasts": len(CONTRASTS), "paired": paired_lines(results), "results": [asdict(r) for r in results],
         }, indent=1))
         print(f"wrote {args.json}")
     return results

@@ -195,6 +195,14 @@ def test_retrieval_scores_split_a_tie_between_right_and_wrong():
     assert r["centroid_acc"] == 1.0  # the "a" centroid is (1, 0); "b"'s is (0.71, 0.71)
 
 
+def test_mcnemar_counts_the_discordant_queries_and_gives_the_exact_binomial_p():
+    base = [1, 1, 1, 0, 0, 1]
+    other = [0, 0, 1, 1, 0, 1]
+    assert probe.mcnemar(base, other) == (2, 1, 1.0)
+    assert probe.mcnemar([1] * 6, [0] * 6) == (6, 0, pytest.approx(2 / 64))
+    assert probe.mcnemar([1, 0], [1, 0]) == (0, 0, 1.0)
+
+
 def test_fake_encoders_fit_the_text_encoder_protocol():
     assert isinstance(oracle(), TextEncoder) and isinstance(ConstantEncoder(), TextEncoder)
 
