@@ -804,6 +804,8 @@ def main(argv: Sequence[str] | None = None) -> list[Result]:
     for n in names:
         if n not in ENCODER_NAMES:
             parser.error(f"unknown encoder {n!r}; valid: {', '.join(ENCODER_NAMES)}")
+    if "clip" in names and args.clip_path is None:
+        parser.error("encoder 'clip' needs --clip-path (no CLIP weights ship in a package here)")
 
     from data.synthetic_text import LEXICON
 
