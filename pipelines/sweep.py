@@ -243,6 +243,18 @@ def flatten_space(entries: Mapping[str, Any], prefix: str = "") -> dict[str, Any
     return flat
 
 
+def nest_keys(values: Mapping[str, Any]) -> dict[str, Any]:
+    """``{"loop.max_steps": 400, "lr": 0.1}`` -> ``{"loop": {"max_steps": 400}, "lr": 0.1}`` (as in the params)."""
+    nested: dict[str, Any] = {}
+    for key, value in values.items():
+        *groups, last = key.split(".")
+        node = nested
+        for group in groups:
+            node = node.setdefault(group, {})
+        node[last] = value
+    return nested
+
+
 def parse_space(stage: str, entries: Mapping[str, Any] | None, stage_params: Mapping[str, Any]) -> dict[str, Dimension]:
     """Parse ``sweep.<stage>``: every key must be a key of ``params[<stage>]``; null entries are dropped.
 
@@ -722,7 +734,7 @@ def write_outputs(out_dir: Path, stage: str, table: list[dict[str, Any]], best: 
               f"{best[settings.metric]:.6g} by trial {best['trial_id']}. Experiment: `{experiment_path}`\n\n")
     best_yaml = (f"# Best of the {stage} sweep: {settings.metric} {best[settings.metric]:.6g} (trial "
                  f"{best['trial_id']}). Use with `dvc exp run -S {stage}.<key>=<value>` or copy into conf/.\n")
-    best_yaml += yaml.safe_dump({stage: {key: best[key] for key in keys}}, sort_keys=False)
+    best_yaml += yaml.safe_dump({stage: nest_keys({key: best[key] for key in keys})}, sort_keys=False)
     with atomic_directory(out_dir, owner="sweep") as tmp:
         pq.write_table(_parquet_table(table), tmp / "results.parquet")
         (tmp / "results.md").write_text(header + markdown_table(ordered, columns), encoding="utf-8")

@@ -52,6 +52,7 @@ from pipelines.sweep import (
     experiment_name,
     fit_concurrency,
     max_concurrent,
+    nest_keys,
     orphaned_placement_groups,
     parse_dimension,
     parse_space,
@@ -243,6 +244,8 @@ def test_nested_space_entries_are_dotted_keys_and_overridable() -> None:
     nested = {"lr": "grid([0.1, 0.2])", "loop": {"max_steps": 500, "batch_size": None}}
     space = parse_space("s", nested, grouped)
     assert space == parse_space("s", {"lr": "grid([0.1, 0.2])", "loop.max_steps": 500}, grouped)
+    assert nest_keys({"lr": 0.1, "loop.max_steps": 500, "loop.seed": 1}) == {"lr": 0.1,
+                                                                              "loop": {"max_steps": 500, "seed": 1}}
     assert space == {"lr": Dimension("grid", ([0.1, 0.2],)), "loop.max_steps": Dimension("fixed", (500,))}
     with pytest.raises(SweepConfigError, match="'loop.steps' is not a key"):
         parse_space("s", {"lr": "uniform(0.1, 1)", "loop": {"steps": 5}}, grouped)
