@@ -65,7 +65,7 @@ import re
 import sys
 import time
 from collections.abc import Callable, Iterable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -839,7 +839,7 @@ def main(argv: Sequence[str] | None = None) -> list[Result]:
     for line in paired_lines(results):
         print(line)
     if args.json is not None:
-        from dataclasses import asdict
+        from benchmarks.machine import cpu_model  # imports torch: only when writing the JSON
 
         args.json.parent.mkdir(parents=True, exist_ok=True)
         args.json.write_text(json.dumps({
@@ -849,16 +849,6 @@ def main(argv: Sequence[str] | None = None) -> list[Result]:
         }, indent=1))
         print(f"wrote {args.json}")
     return results
-
-
-def cpu_model() -> str:
-    """benchmarks/machine.py's CPU name."""
-    import importlib.util
-
-    spec = importlib.util.spec_from_file_location("machine_bench", ROOT / "benchmarks" / "machine.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module.cpu_model()
 
 
 if __name__ == "__main__":

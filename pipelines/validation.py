@@ -45,13 +45,18 @@ from pipelines.feature_store import FeatureStore
 from pipelines.mld_family import MotionLCMGenerator, VAEReconstruction, load_mld, load_vae
 
 
+def eval_config(params: dict[str, Any]) -> EvalConfig:
+    """The ``evaluate`` params section as the protocol's settings (its ``samples`` group aside)."""
+    return EvalConfig(**{key: value for key, value in params["evaluate"].items() if key != "samples"})
+
+
 def generator_scores(params: dict[str, Any], generator: Generator, split: str = "val") -> dict[str, float]:
     """``val_FID`` and ``val_R_precision_top3`` of ``generator`` (one replication, no MultiModality)."""
     store = FeatureStore(repo_path(params, "features.out"))
     items = store.split(split)
-    section = {key: value for key, value in params["evaluate"].items() if key != "samples"}
-    cfg = replace(EvalConfig(**section), replications=1, mm_repeats=0, timing_sentences=1,
-                  diversity_times=min(section["diversity_times"], len(items) - 1))
+    cfg = eval_config(params)
+    cfg = replace(cfg, replications=1, mm_repeats=0, timing_sentences=1,
+                  diversity_times=min(cfg.diversity_times, len(items) - 1))
     embedder = load_evaluator(artifacts_dir(params) / "train_evaluator")
     refs = references(items, embedder, cfg, split=split)
     row = evaluate(refs, items, store.mean, store.std, embedder, get_skeleton(params["data"]["skeleton"]), cfg,
@@ -111,7 +116,7 @@ def evaluator_scores(params: dict[str, Any], loop_config: dict[str, Any], state:
     evaluator.load_state_dict(state["models"]["evaluator"])
     embedder = MotionEmbedder(evaluator, WordVocab.from_dict(loop_config["vocab"]), loop_config["max_words"])
     items = FeatureStore(repo_path(params, "features.out")).split("val")
-    cfg = EvalConfig(**{key: value for key, value in params["evaluate"].items() if key != "samples"})
+    cfg = eval_config(params)
     check_group_size(len(items), cfg, split="val")
     d = draw(items, np.random.default_rng([cfg.seed, 0]), cfg.unit_length)
     top = M.r_precision(embedder.texts(d.tokens), embedder.motions(d.real, d.lengths), cfg.group_size, top_k=3)
