@@ -18,7 +18,8 @@ The draws and the evaluator's embeddings of the captions and of the reference mo
 family's stage loads them. Each row draws its Diversity and MultiModality pairs from its own
 random stream (:func:`row_rng`), so its metrics do not depend on the rows evaluated beside it.
 AITS (seconds per sentence, batch 1, warm, loading excluded) and ms per frame are timed once
-per generator on ``timing_sentences`` test captions.
+per generator on ``timing_sentences`` test captions (fewer, but at least three, once they
+have taken ``timing_seconds``).
 
 Controlled rows (:class:`~models.generator.ControlledGenerator`) answer the same captions and lengths
 with hints taken from the real crops' own global joints (:func:`control_hint`: the row's joints on
@@ -63,6 +64,8 @@ from models.generator import ControlledGenerator, ControlSpec, Generator, Hint, 
 from pipelines.checkpoint import load_final_model
 
 REAL = "Real"
+#: Captions every generator is timed on before ``evaluate.timing_seconds`` may stop its timing.
+MIN_TIMED_SENTENCES = 3
 
 
 @dataclass(frozen=True)
@@ -76,6 +79,7 @@ class EvalConfig:
     mm_repeats: int = 30
     mm_times: int = 10
     timing_sentences: int = 10
+    timing_seconds: float | None = None
     unit_length: int = 4
     seed: int = 0
 
@@ -224,11 +228,19 @@ def multimodality(gen: Generator, d: Draw, embedder: MotionEmbedder, mean: np.nd
     return M.multimodality(np.stack(emb, axis=1), cfg.mm_times, rng)
 
 
-def time_generator(gen: Generator, d: Draw, n: int, hint: Hint | None = None) -> dict[str, float]:
-    """AITS (s per sentence, batch 1, warm) and ms per generated frame over ``n`` captions."""
+def time_generator(gen: Generator, d: Draw, n: int, hint: Hint | None = None,
+                   budget_s: float | None = None) -> dict[str, float]:
+    """AITS (s per sentence, batch 1, warm) and ms per generated frame over the first ``n`` captions.
+
+    With ``budget_s``, timing stops early once :data:`MIN_TIMED_SENTENCES` captions are timed and their
+    total time reaches ``budget_s``: a 1000-step DDPM row need not spend minutes on a figure that three
+    captions already pin down, while fast rows still average all ``n``.
+    """
     sample_rows(gen, d.text, d.lengths, 0, hint, [0])  # warm-up
     seconds, frames = [], []
     for k in range(min(n, len(d.lengths))):
+        if budget_s is not None and len(seconds) >= MIN_TIMED_SENTENCES and sum(seconds) >= budget_s:
+            break
         start = time.perf_counter()
         sample_rows(gen, d.text, d.lengths, k, hint, [k])
         seconds.append(time.perf_counter() - start)
@@ -410,7 +422,7 @@ def evaluate(refs: Sequence[Reference], items: Sequence[StoredItem], mean: np.nd
     timing_draw = draw(items, np.random.default_rng([cfg.seed, cfg.replications]), cfg.unit_length)
     for gen in generators:
         hint = _hint_of(gen, timing_draw, cfg, cfg.replications, skeleton)
-        table[gen.name].update(time_generator(gen, timing_draw, cfg.timing_sentences, hint))
+        table[gen.name].update(time_generator(gen, timing_draw, cfg.timing_sentences, hint, cfg.timing_seconds))
         table[gen.name]["NFE"] = gen.nfe
         k = eval_items(gen, len(refs[0].draw.lengths), cfg) if refs else None
         if k is not None:

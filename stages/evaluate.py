@@ -67,6 +67,8 @@ def check_section(params: dict[str, Any]) -> None:
         check_number(cfg, key, "evaluate", low=1, integer=True)
     for key in ("diversity_times", "mm_texts", "mm_repeats", "mm_times", "timing_sentences", "seed"):
         check_number(cfg, key, "evaluate", low=0, integer=True)
+    if cfg.get("timing_seconds") is not None:
+        check_number(cfg, "timing_seconds", "evaluate", low=0.0, low_open=True)
     samples = check_keys(cfg.get("samples"), "evaluate.samples", ("rows", "length", "prompts"))
     check_type(samples, "rows", "evaluate.samples", kind=list)
     check_number(samples, "length", "evaluate.samples", low=4, high=196, integer=True)

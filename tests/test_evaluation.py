@@ -164,6 +164,27 @@ def test_aits_times_each_caption_alone_after_an_untimed_warm_up(world, monkeypat
     assert len(capped.calls) == 1 + len(d.lengths)  # at most one timed call per caption of the draw
 
 
+def test_aits_time_budget_stops_after_three_captions_at_the_earliest(world, monkeypatch):
+    _, test, _ = world
+    clock = FakeClock()
+    monkeypatch.setattr(evaluation, "time", clock)
+    d = draw(test, np.random.default_rng(4), 4)
+    per_call = 0.5 + 0.01 * d.lengths[:10].astype(np.float64)
+    tiny = TimedGenerator(clock)  # any budget below one caption's time still times three captions
+    out = time_generator(tiny, d, 10, budget_s=1e-6)
+    assert len(tiny.calls) == 1 + evaluation.MIN_TIMED_SENTENCES
+    assert out["AITS_s"] == pytest.approx(float(np.mean(per_call[:3])))
+    budget = float(per_call[:5].sum()) - 1e-9  # reached after the fifth caption
+    assert len(_calls(time_generator, clock, d, budget)) == 1 + 5
+    assert len(_calls(time_generator, clock, d, None)) == 1 + 10  # no budget: all n captions
+
+
+def _calls(timer, clock, d, budget):
+    gen = TimedGenerator(clock)
+    timer(gen, d, 10, budget_s=budget)
+    return gen.calls
+
+
 def test_crop_lengths_follow_the_reference_rounding():
     rng = np.random.default_rng(1)
     lengths = np.full(30000, 103)
