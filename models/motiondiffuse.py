@@ -94,6 +94,14 @@ Choices (each deliberate; "code" = the released MotionDiffuse code):
     through the network, a small CPU width cannot, and its eps error has a floor there. The skip
     carries x_t around the network, which then models the correction. A fresh model then predicts
     the linear estimate instead of 0.
+12. Temporal kernel (``temporal_kernel`` k > 0, ours; the code: none, k = 0). Every FFN runs a
+    depthwise convolution over frames (kernel k, zero padding, one filter per channel, initialised to
+    the identity) between its first Linear and the GELU, with padded frames zeroed before it, so a
+    valid frame sees only valid neighbours and a sample's output does not depend on the batch's
+    padding. Nothing else in the network relates neighbouring frames: linear attention mixes all
+    frames by content, so at small t, where eps is white noise on a smooth motion, the network has no
+    local filter to tell the two apart and its eps estimate is no better than 0
+    (``benchmarks/motiondiffuse_levels.py``); what it leaves in x0 is frame-to-frame jitter.
 """
 
 from __future__ import annotations
@@ -141,7 +149,8 @@ class MotionDiffuseConfig:
     at width h. ``time_embed_mult``: the conditioning vector e has ``time_embed_mult * h`` dims (4).
     Schedule: ``num_train_timesteps`` T, ``beta_start``, ``beta_end``, ``rescale_betas`` (scale both
     by 1000 / T as the code). ``input_skip``: add a learned per-timestep multiple of x_t to the
-    prediction (module docstring item 11; the code: off).
+    prediction (module docstring item 11; the code: off). ``temporal_kernel``: frames of the depthwise
+    convolution in every FFN (item 12; 0 = none, the code).
     """
 
     feature_dim: int = 263
@@ -162,6 +171,7 @@ class MotionDiffuseConfig:
     beta_end: float = 0.02
     rescale_betas: bool = True
     input_skip: bool = False
+    temporal_kernel: int = 0
 
     def __post_init__(self) -> None:
         for name in ("feature_dim", "text_dim", "width", "layers", "heads", "ff_dim", "text_heads", "text_ff_dim",
@@ -171,6 +181,9 @@ class MotionDiffuseConfig:
                 raise ValueError(f"{name} must be an integer >= 1, got {value!r}")
         if isinstance(self.text_layers, bool) or not isinstance(self.text_layers, int) or self.text_layers < 0:
             raise ValueError(f"text_layers must be an integer >= 0, got {self.text_layers!r}")
+        if (isinstance(self.temporal_kernel, bool) or not isinstance(self.temporal_kernel, int)
+                or self.temporal_kernel < 0 or (self.temporal_kernel and self.temporal_kernel % 2 == 0)):
+            raise ValueError(f"temporal_kernel must be 0 or an odd integer >= 1, got {self.temporal_kernel!r}")
         if self.width % self.heads:
             raise ValueError(f"width ({self.width}) must be divisible by heads ({self.heads})")
         if self.width % self.text_heads:
@@ -321,15 +334,33 @@ class MotionAttention(nn.Module):
 
 
 class StylizedFFN(nn.Module):
-    """``x + Stylization(Linear(GELU(Linear(x))), e)``, the inner output Linear zero-initialised (code)."""
+    """``x + Stylization(Linear(GELU(Conv(Linear(x)))), e)``, the output Linear zero-initialised (code).
 
-    def __init__(self, dim: int, ff_dim: int, emb_dim: int, dropout: float = 0.0) -> None:
+    ``kernel`` > 0: ``Conv`` is a depthwise convolution over frames initialised to the identity, with
+    padded frames zeroed before it (module docstring item 12); 0: no convolution (the code).
+    """
+
+    def __init__(self, dim: int, ff_dim: int, emb_dim: int, dropout: float = 0.0, kernel: int = 0) -> None:
         super().__init__()
-        self.ff = nn.Sequential(nn.Linear(dim, ff_dim), nn.GELU(), nn.Dropout(dropout), _zero(nn.Linear(ff_dim, dim)))
+        self.inner = nn.Linear(dim, ff_dim)
+        self.conv = None
+        if kernel:
+            self.conv = nn.Conv1d(ff_dim, ff_dim, kernel, padding=kernel // 2, groups=ff_dim)
+            nn.init.zeros_(self.conv.weight)
+            nn.init.zeros_(self.conv.bias)
+            with torch.no_grad():
+                self.conv.weight[:, 0, kernel // 2] = 1.0
+        self.outer = nn.Sequential(nn.GELU(), nn.Dropout(dropout), _zero(nn.Linear(ff_dim, dim)))
         self.style = StylizationBlock(dim, emb_dim, dropout)
 
-    def forward(self, x: Tensor, emb: Tensor) -> Tensor:
-        return x + self.style(self.ff(x), emb)
+    def forward(self, x: Tensor, emb: Tensor, frame_mask: Tensor | None = None) -> Tensor:
+        """x (B, N, h), e (B, E_t), frame_mask (B, N) bool True = valid frame (needed with a kernel)."""
+        h = self.inner(x)
+        if self.conv is not None:
+            if frame_mask is None:
+                raise ValueError("a temporal kernel needs the frame mask")
+            h = self.conv(torch.where(frame_mask[..., None], h, 0.0).transpose(1, 2)).transpose(1, 2)
+        return x + self.style(self.outer(h), emb)
 
 
 class DecoderLayer(nn.Module):
@@ -340,12 +371,12 @@ class DecoderLayer(nn.Module):
         h, e = cfg.width, cfg.time_embed_dim
         self.self_attn = MotionAttention(h, cfg.heads, e, cfg.dropout, kind=cfg.attention)
         self.cross_attn = MotionAttention(h, cfg.heads, e, cfg.dropout, kind=cfg.attention, cross=True)
-        self.ffn = StylizedFFN(h, cfg.ff_dim, e, cfg.dropout)
+        self.ffn = StylizedFFN(h, cfg.ff_dim, e, cfg.dropout, cfg.temporal_kernel)
 
     def forward(self, x: Tensor, emb: Tensor, frame_mask: Tensor, text: Tensor, text_mask: Tensor) -> Tensor:
         x = self.self_attn(x, emb, frame_mask)
         x = self.cross_attn(x, emb, text_mask, text)
-        return self.ffn(x, emb)
+        return self.ffn(x, emb, frame_mask)
 
 
 class TextEncoding(NamedTuple):

@@ -43,7 +43,7 @@ SECTION_KEYS = ("lr", "ema_decay", "crop_frames", "num_train_timesteps", "beta_s
 #: Keys of ``train_motiondiffuse.model``: the network sizes (``feature_dim``/``text_dim`` come from the store,
 #: the schedule from the section's keys above).
 MODEL_KEYS = ("width", "layers", "heads", "ff_dim", "dropout", "text_layers", "text_heads", "text_ff_dim",
-              "time_embed_mult", "max_len", "attention", "input_skip")
+              "time_embed_mult", "max_len", "attention", "input_skip", "temporal_kernel")
 
 
 def dataset(config: dict) -> MotionTextDataset:

@@ -15,6 +15,7 @@ from models.motiondiffuse import (
     MotionDiffuse,
     MotionDiffuseConfig,
     StylizationBlock,
+    StylizedFFN,
     TextEncoding,
     body_part_model_fn,
     joint_feature_indices,
@@ -135,9 +136,9 @@ def test_attention_block_valid_outputs_ignore_padded_frames(kind: str) -> None:
     torch.testing.assert_close(a[1], b[1], rtol=0, atol=0)
 
 
-@pytest.mark.parametrize("attention", ["linear", "softmax"])
-def test_model_ignores_padding_and_amount_of_padding(attention: str) -> None:
-    model = _model(attention=attention)
+@pytest.mark.parametrize(("attention", "kernel"), [("linear", 0), ("softmax", 0), ("linear", 3)])
+def test_model_ignores_padding_and_amount_of_padding(attention: str, kernel: int) -> None:
+    model = _model(attention=attention, temporal_kernel=kernel)
     ws, wm = _text()
     x, t, lengths = torch.randn(2, 10, D, generator=_gen(7)), torch.tensor([3, 40]), torch.tensor([6, 10])
     x2 = x.clone()
@@ -176,6 +177,26 @@ def test_fresh_blocks_are_identities_and_fresh_model_predicts_zero() -> None:
     ws, wm = _text()
     out = model(torch.randn(2, 9, D), torch.tensor([0, 49]), ws, wm, torch.tensor([9, 4]))
     assert out.shape == (2, 9, D) and torch.count_nonzero(out) == 0
+
+
+def test_temporal_kernel_starts_as_the_identity_and_reaches_only_its_neighbours() -> None:
+    torch.manual_seed(0)
+    x, emb = torch.randn(1, 9, 16), torch.randn(1, 64)
+    mask = torch.ones(1, 9, dtype=torch.bool)
+    plain, conv = StylizedFFN(16, 32, 64), StylizedFFN(16, 32, 64, kernel=3)
+    conv.load_state_dict(plain.state_dict(), strict=False)  # same Linears; the kernel is the identity
+    for p in (*plain.outer.parameters(), *plain.style.out_layers.parameters()):
+        torch.nn.init.normal_(p)
+    conv.load_state_dict(plain.state_dict(), strict=False)
+    same = plain(x, emb, mask)
+    torch.testing.assert_close(conv(x, emb, mask), same, rtol=0, atol=float32_atol(same))  # layout rounding only
+    torch.nn.init.normal_(conv.conv.weight)
+    x2 = x.clone()
+    x2[0, 4] += 1.0  # a change at frame 4 reaches frames 3..5 only (kernel 3), through the FFN
+    changed = (conv(x2, emb, mask) - conv(x, emb, mask)).abs().sum(-1)[0] > 0
+    assert changed.tolist() == [False, False, False, True, True, True, False, False, False]
+    with pytest.raises(ValueError, match="frame mask"):
+        conv(x, emb)
 
 
 def test_forward_input_validation() -> None:
@@ -402,6 +423,8 @@ def test_time_varied_validation_names_the_segment() -> None:
         ({"beta_start": 0.03}, "beta_start"),
         ({"num_train_timesteps": 20}, "beta_end"),
         ({"max_len": 0}, "max_len"),
+        ({"temporal_kernel": 4}, "temporal_kernel"),
+        ({"temporal_kernel": -1}, "temporal_kernel"),
     ],
 )
 def test_config_validation_names_the_field(overrides: dict[str, object], field: str) -> None:

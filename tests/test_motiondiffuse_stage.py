@@ -43,7 +43,8 @@ pytestmark = pytest.mark.usefixtures("one_thread")  # tiny networks (tests/conft
 FIXTURES = Path(__file__).parent / "fixtures" / "humanml3d"
 D, E = 263, 8
 TINY_MODEL = {"width": 16, "layers": 1, "heads": 2, "ff_dim": 32, "dropout": 0.0, "text_layers": 1, "text_heads": 2,
-              "text_ff_dim": 32, "time_embed_mult": 2, "max_len": 64, "attention": "linear", "input_skip": False}
+              "text_ff_dim": 32, "time_embed_mult": 2, "max_len": 64, "attention": "linear", "input_skip": False,
+              "temporal_kernel": 0}
 LOOP = {"seed": 0, "batch_size": 8, "max_steps": 6, "grad_clip": 0.5, "lr_schedule": "constant", "warmup_steps": 0,
         "min_lr_ratio": 0.0, "log_every": 3, "num_data_workers": 0, "length_buckets": 0}
 
