@@ -85,6 +85,14 @@ Choices where the paper (or its code) is ambiguous or where we depart from it, e
    G must carry every one of the D feature values through its width-h tokens to reproduce it, which
    its h = 1024 > 263 allows and a small CPU width (or P D > h with patches) does not. The skip
    carries it around the network, which then models the correction.
+   ``skip_kernel`` k > 1 (ours) widens the scalar into a per-step, per-feature filter over k
+   neighbouring frames, ``x0_hat = G_out + sum_j s_{t,d,j} x_{t+1}[n + j - k // 2, d]`` (padded frames
+   and the ends read as 0), initialised by the training recipe to the Wiener filter: the least-squares
+   linear estimate of x0 from the window under the training features' lag moments
+   (:func:`wiener_skip_taps`; with uncorrelated frames it is the scalar ``sqrt(alpha_bar)`` at the
+   centre). The scalar passes s_t times the noise of x_{t+1} into x0_hat, frame by frame: jitter in
+   every sample, whose last step returns the level-1 estimate. Motion is smooth over neighbouring
+   frames, so the window's estimate is a temporal low-pass that leaves most of that noise out.
 """
 
 from __future__ import annotations
@@ -256,7 +264,8 @@ class EMDMConfig:
     (a small masked transformer, module docstring item 4; no dropout), ``d_time_dim`` (DDGAN's 128).
     ``patch_frames``: frames per token of G and D (module docstring item 9; the paper: 1).
     ``d_condition``: False gives D no condition (its condition token is 0): naive DDGAN (EMDM Table D8).
-    ``input_skip``: add a learned per-step multiple of x_{t+1} to G's output (module docstring item 10).
+    ``input_skip``: add a learned per-step multiple of x_{t+1} to G's output (module docstring item 10);
+    ``skip_kernel`` (odd; 1: that multiple) widens it to a learned per-step filter over frames.
     Training: ``p_uncond`` (condition dropout, 0.1), ``r1_gamma`` (0.02), ``r1_interval`` (lazy R1
     every k steps, scaled by k), ``geo_weight`` R (None: 100 for text, 1 for action), ``geo_lambda``.
     Schedule: ``num_steps``, ``beta_min``, ``beta_max``. Sampling: ``guidance`` (2.5).
@@ -283,6 +292,7 @@ class EMDMConfig:
     patch_frames: int = 1
     d_condition: bool = True
     input_skip: bool = False
+    skip_kernel: int = 1
     p_uncond: float = 0.1
     r1_gamma: float = 0.02
     r1_interval: int = 15
@@ -304,6 +314,9 @@ class EMDMConfig:
             raise ValueError(f"mapping_layers must be >= 1, got {self.mapping_layers}")
         if self.patch_frames < 1:
             raise ValueError(f"patch_frames must be >= 1, got {self.patch_frames}")
+        if isinstance(self.skip_kernel, bool) or not isinstance(self.skip_kernel, int) or self.skip_kernel < 1 \
+                or self.skip_kernel % 2 == 0:
+            raise ValueError(f"skip_kernel must be an odd integer >= 1, got {self.skip_kernel!r}")
 
     @property
     def geometric_weight(self) -> float:
@@ -400,6 +413,43 @@ def condition_dropout(
     return (draw < p).to(dev)
 
 
+def wiener_skip_taps(moments: Tensor, alphas_cumprod: Tensor, kernel: int) -> Tensor:
+    """Per-step, per-feature Wiener taps (T, D, k) for ``skip_kernel`` k (module docstring item 10).
+
+    ``moments`` (L, D), L >= k: ``m_d(j) = E[x0[n, d] x0[n + j, d]]`` of the normalised training
+    features; ``alphas_cumprod`` (T,): the level each step's input is at. With ``x = a x0 + s eps``
+    (a = sqrt(alpha_bar), s = sqrt(1 - alpha_bar)) and R_d the k x k Toeplitz matrix of m_d, the
+    least-squares estimate of x0[n] from the window ``x[n - k//2 .. n + k//2]`` has the taps
+    ``(a^2 R_d + s^2 I)^-1 a R_d[:, k//2]``. Uncorrelated unit-variance frames give ``a`` at the centre
+    (the scalar skip), since a^2 + s^2 = 1.
+    """
+    if kernel < 1 or kernel % 2 == 0 or moments.ndim != 2 or moments.shape[0] < kernel:
+        raise ValueError(f"need an odd kernel >= 1 and moments (L >= kernel, D); got kernel={kernel}, "
+                         f"moments {tuple(moments.shape)}")
+    m = moments.double()
+    lag = (torch.arange(kernel)[:, None] - torch.arange(kernel)[None]).abs()
+    r = m[lag].permute(2, 0, 1)  # (D, k, k) Toeplitz per feature
+    a = alphas_cumprod.double().sqrt()[:, None, None, None]
+    s2 = (1.0 - alphas_cumprod.double())[:, None, None, None]
+    cov = a**2 * r[None] + s2 * torch.eye(kernel, dtype=torch.float64)
+    cross = a * r[None, :, :, kernel // 2 : kernel // 2 + 1]
+    return torch.linalg.solve(cov, cross)[..., 0].float()
+
+
+def lag_moments(motions: Sequence[Tensor], lags: int) -> Tensor:
+    """(lags, D) ``E[x[n, d] x[n + j, d]]`` for j < lags over every pair of frames within each motion (T_i, D)."""
+    sums, counts = torch.zeros(lags, motions[0].shape[-1], dtype=torch.float64), torch.zeros(lags, 1,
+                                                                                            dtype=torch.float64)
+    for x in motions:
+        x = x.double()
+        for j in range(min(lags, len(x))):
+            sums[j] += (x[: len(x) - j] * x[j:]).sum(0)
+            counts[j] += len(x) - j
+    if bool((counts == 0).any()):
+        raise ValueError(f"motions too short for {lags} lags")
+    return (sums / counts).float()
+
+
 class EMDMGenerator(nn.Module):
     """EMDM's conditional generator ``G(x_{t+1}, t, z, c) -> x0_hat`` (Eq. 3, App. C.1).
 
@@ -424,8 +474,15 @@ class EMDMGenerator(nn.Module):
             cfg.layers, h, cfg.heads, cfg.ff_dim, cfg.dropout, cfg.activation, cfg.norm_first
         )
         self.frame_out = nn.Linear(h, cfg.patch_frames * cfg.feature_dim)
-        self.skip = (nn.Parameter(cfg.make_schedule().alphas_cumprod[1:].sqrt().float()) if cfg.input_skip
-                     else None)
+        self.skip = None
+        if cfg.input_skip:
+            scalar = cfg.make_schedule().alphas_cumprod[1:].sqrt().float()
+            if cfg.skip_kernel == 1:
+                self.skip = nn.Parameter(scalar)
+            else:  # the scalar at the centre tap until the recipe sets the Wiener taps
+                taps = torch.zeros(cfg.num_steps, cfg.feature_dim, cfg.skip_kernel)
+                taps[:, :, cfg.skip_kernel // 2] = scalar[:, None]
+                self.skip = nn.Parameter(taps)
 
     def condition_tokens(self, cond: Tensor, drop_cond: Tensor | None = None) -> Tensor:
         """(B, h) condition tokens; rows where ``drop_cond`` (B,) bool is True get the null token."""
@@ -468,8 +525,20 @@ class EMDMGenerator(nn.Module):
             tokens = layer(tokens, padding)
         out = from_patches(self.frame_out(tokens[:, _PREFIX_G:]), n, self.config.patch_frames)
         if self.skip is not None:
-            out = out + self.skip[steps].to(out.dtype)[:, None, None] * x_next
+            out = out + self.skipped(x_next, steps, valid).to(out.dtype)
         return torch.where(valid[..., None], out, 0.0)
+
+    def skipped(self, x_next: Tensor, steps: Tensor, valid: Tensor) -> Tensor:
+        """The input skip of ``x_next`` (B, N, D) at ``steps`` (B,): its per-step multiple, or its per-step
+        filter over frames (``skip_kernel`` > 1), reading padded frames and the ends as 0."""
+        if self.skip is None:
+            raise RuntimeError("this generator has no input skip (input_skip: false)")
+        if self.skip.ndim == 1:
+            return self.skip[steps][:, None, None] * x_next
+        k = self.skip.shape[-1]
+        x = torch.where(valid[..., None], x_next, 0.0)
+        windows = F.pad(x, (0, 0, k // 2, k // 2)).unfold(1, k, 1)  # (B, N, D, k)
+        return torch.einsum("bndk,bdk->bnd", windows, self.skip[steps].to(x.dtype))
 
 
 class EMDMDiscriminator(nn.Module):

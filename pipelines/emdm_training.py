@@ -19,7 +19,9 @@ from models.emdm import (
     EMDMGenerator,
     discriminator_step_losses,
     generator_step_losses,
+    lag_moments,
     lazy_r1_scale,
+    wiener_skip_taps,
 )
 from pipelines.cli import repo_path
 from pipelines.config import check_fields, check_number
@@ -37,7 +39,7 @@ SECTION_KEYS = ("condition", "num_steps", "lr_g", "lr_d", "ema_decay", "geometri
 #: and the training keys above).
 MODEL_KEYS = ("width", "layers", "heads", "ff_dim", "dropout", "activation", "norm_first", "z_dim", "mapping_layers",
               "d_width", "d_layers", "d_heads", "d_ff_dim", "d_time_dim", "patch_frames", "d_condition",
-              "input_skip")
+              "input_skip", "skip_kernel")
 CONDITIONS = ("text", "action")
 
 
@@ -51,8 +53,14 @@ def dataset(config: dict) -> MotionTextDataset | ActionClips:
 
 
 def build(config: dict) -> Components:
+    """G (its input-skip filter set to the Wiener taps of ``skip_moments`` when it has one), D, their Adams."""
     model = EMDMConfig(**config["model"])
     generator, discriminator = EMDMGenerator(model), EMDMDiscriminator(model)
+    if generator.skip is not None and generator.skip.ndim == 3:
+        taps = wiener_skip_taps(torch.tensor(config["skip_moments"]), model.make_schedule().alphas_cumprod[1:],
+                                model.skip_kernel)
+        with torch.no_grad():
+            generator.skip.copy_(taps)
     opt_g = torch.optim.Adam(generator.parameters(), lr=config["lr_g"], betas=ADAM_BETAS)
     opt_d = torch.optim.Adam(discriminator.parameters(), lr=config["lr_d"], betas=ADAM_BETAS)
     return Components(
@@ -164,6 +172,10 @@ def stage_config(params: dict[str, Any], section: str = "train_emdm") -> dict[st
         "ema_decay": float(cfg["ema_decay"]),
         "model": model_config(cfg, store.feature_dim, int(store.text_encoder_meta["dim"]), len(classes), section),
     }
+    if out["model"]["input_skip"] and out["model"]["skip_kernel"] > 1:
+        mean, std = torch.tensor(store.mean), torch.tensor(store.std)
+        motions = [(torch.from_numpy(item.features) - mean) / std for item in store.split("train")]
+        out["skip_moments"] = lag_moments(motions, out["model"]["skip_kernel"]).tolist()
     return out | ({"classes": classes} if classes else {})
 
 

@@ -36,7 +36,7 @@ FIXTURES = Path(__file__).parent / "fixtures" / "humanml3d"
 TINY_MODEL = {"width": 16, "layers": 1, "heads": 2, "ff_dim": 32, "dropout": 0.0, "activation": "selu",
               "norm_first": False, "z_dim": 4, "mapping_layers": 2, "d_width": 16, "d_layers": 1, "d_heads": 2,
               "d_ff_dim": 16, "d_time_dim": 8, "patch_frames": 1,
-              "d_condition": True, "input_skip": False}
+              "d_condition": True, "input_skip": False, "skip_kernel": 1}
 LOOP = {"seed": 0, "batch_size": 8, "max_steps": 6, "grad_clip": 1.0, "lr_schedule": "constant", "warmup_steps": 0,
         "min_lr_ratio": 0.0, "log_every": 3, "num_data_workers": 0, "length_buckets": 0}
 
