@@ -2,25 +2,11 @@
 
 from __future__ import annotations
 
-import importlib.util
-import sys
-from pathlib import Path
-
 import numpy as np
 import pytest
+from bench_module import load_benchmark
 
-BENCH = Path(__file__).resolve().parents[1] / "benchmarks" / "contrasts.py"
-
-
-def _load():
-    spec = importlib.util.spec_from_file_location("contrasts", BENCH)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module  # dataclasses look their module up there
-    spec.loader.exec_module(module)
-    return module
-
-
-contrasts = _load()
+contrasts = load_benchmark("contrasts")
 PAIRS = {pair.name: pair for pair in contrasts.PAIRS}
 T = 120
 

@@ -11,30 +11,17 @@ random tie-break). The real encoders and the full gallery run only in the ``slow
 
 from __future__ import annotations
 
-import importlib.util
-import sys
 from collections.abc import Mapping, Sequence
-from pathlib import Path
 
 import numpy as np
 import pytest
+from bench_module import load_benchmark
 
 from data.synthetic_library import ACTIONS
 from data.synthetic_text import LEXICON
 from data.text_encoders import TextEncoder, TextEncoding
 
-BENCH = Path(__file__).resolve().parents[1] / "benchmarks" / "text_encoder_probe.py"
-
-
-def _load():
-    spec = importlib.util.spec_from_file_location("text_encoder_probe", BENCH)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module  # dataclasses look their module up there
-    spec.loader.exec_module(module)
-    return module
-
-
-probe = _load()
+probe = load_benchmark("text_encoder_probe")
 Seg, GalleryItem, Query, Contrast, step = probe.Seg, probe.GalleryItem, probe.Query, probe.Contrast, probe.step
 
 
