@@ -28,6 +28,7 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from data.motion_dataset import MotionTextDataset, collate_trimmed_words  # noqa: E402
+from models.transformer import lengths_to_mask  # noqa: E402
 from pipelines.cli import artifacts_dir  # noqa: E402
 from pipelines.config import load_params  # noqa: E402
 from pipelines.motiondiffuse_family import TRAIN_STAGE, load_motiondiffuse  # noqa: E402
@@ -53,7 +54,7 @@ def main() -> None:
     torch.manual_seed(0)  # the dataset's caption and window draws
     batch = collate_trimmed_words([data[i] for i in range(min(args.items, len(data)))])
     x0, lengths, tokens, mask = batch["motion"], batch["length"], batch["tokens"], batch["token_mask"]
-    valid = (torch.arange(x0.shape[1])[None] < lengths[:, None])[..., None]
+    valid = lengths_to_mask(lengths, x0.shape[1])[..., None]
     count = valid.sum() * x0.shape[-1]
     real_rough = roughness(x0, valid)
     rng = torch.Generator().manual_seed(0)

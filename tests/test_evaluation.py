@@ -175,13 +175,13 @@ def test_aits_time_budget_stops_after_three_captions_at_the_earliest(world, monk
     assert len(tiny.calls) == 1 + evaluation.MIN_TIMED_SENTENCES
     assert out["AITS_s"] == pytest.approx(float(np.mean(per_call[:3])))
     budget = float(per_call[:5].sum()) - 1e-9  # reached after the fifth caption
-    assert len(_calls(time_generator, clock, d, budget)) == 1 + 5
-    assert len(_calls(time_generator, clock, d, None)) == 1 + 10  # no budget: all n captions
+    assert len(_timed_calls(clock, d, budget)) == 1 + 5
+    assert len(_timed_calls(clock, d, None)) == 1 + 10  # no budget: all n captions
 
 
-def _calls(timer, clock, d, budget):
+def _timed_calls(clock, d, budget):
     gen = TimedGenerator(clock)
-    timer(gen, d, 10, budget_s=budget)
+    time_generator(gen, d, 10, budget_s=budget)
     return gen.calls
 
 

@@ -184,10 +184,9 @@ def test_temporal_kernel_starts_as_the_identity_and_reaches_only_its_neighbours(
     x, emb = torch.randn(1, 9, 16), torch.randn(1, 64)
     mask = torch.ones(1, 9, dtype=torch.bool)
     plain, conv = StylizedFFN(16, 32, 64), StylizedFFN(16, 32, 64, kernel=3)
-    conv.load_state_dict(plain.state_dict(), strict=False)  # same Linears; the kernel is the identity
     for p in (*plain.outer.parameters(), *plain.style.out_layers.parameters()):
-        torch.nn.init.normal_(p)
-    conv.load_state_dict(plain.state_dict(), strict=False)
+        torch.nn.init.normal_(p)  # non-zero outputs (the output Linears start at 0)
+    conv.load_state_dict(plain.state_dict(), strict=False)  # same Linears; the kernel is the identity
     same = plain(x, emb, mask)
     torch.testing.assert_close(conv(x, emb, mask), same, rtol=0, atol=float32_atol(same))  # layout rounding only
     torch.nn.init.normal_(conv.conv.weight)
