@@ -16,8 +16,8 @@ library kinds of :data:`data.synthetic_library.ACTIONS`, e.g. ``sit_down`` and `
 Queries. :data:`PARAPHRASES` are hand-written paraphrases, four per action, whose content words never
 occur in the gallery nor anywhere in the caption grammar (:data:`data.synthetic_text.LEXICON`). Only the
 function words of :data:`FUNCTION_WORDS` (articles, pronouns, prepositions, "then", "left"/"right",
-"once"/"three times", ...) may be shared. :func:`held_out_violations` checks this, also after stripping
-inflections ("kicked" leaks "kick"); the script prints every violation and exits non-zero on one.
+"once"/"three times", ...) may be shared. :func:`~data.paraphrase_text.held_out_violations` checks this,
+also after stripping inflections ("kicked" leaks "kick"); the script prints every violation and exits non-zero on one.
 
 Metrics (cosine similarity of the encoders' L2-normalised pooled embeddings):
 
@@ -61,10 +61,9 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import re
 import sys
 import time
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
@@ -74,6 +73,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from data.paraphrase_text import held_out_violations, words_of  # noqa: E402
 from data.text_encoders import TextEncoder, TextEncoding  # noqa: E402
 
 TIE = 1e-6
@@ -279,38 +279,6 @@ CONTRASTS: tuple[Contrast, ...] = tuple(
 )
 
 # --------------------------------------------------------------------------------------------- held-out check
-
-
-def words_of(text: str) -> list[str]:
-    """Lower-case alphabetic words of ``text``."""
-    return re.findall(r"[a-z]+", text.lower())
-
-
-def stem(word: str) -> str:
-    """A crude stem that maps inflections together: walks/walked/walking/walk -> walk, rises/rise -> ris."""
-    for suffix in ("ing", "ed", "es", "s"):
-        if word.endswith(suffix) and len(word) - len(suffix) >= 3:
-            word = word[: -len(suffix)]
-            break
-    return word[:-1] if word.endswith("e") and len(word) > 3 else word
-
-
-def held_out_violations(texts: Iterable[str], vocabulary: Iterable[str],
-                        allowed: frozenset[str] = FUNCTION_WORDS) -> list[tuple[str, str]]:
-    """(text, word) for each content word of ``texts`` that occurs in ``vocabulary``, as it is or by stem.
-
-    Words in ``allowed`` are never violations.
-    """
-    vocab = {w for v in vocabulary for w in words_of(v)}
-    stems = {stem(w) for w in vocab}
-    out = []
-    for text in texts:
-        for word in words_of(text):
-            if word in allowed:
-                continue
-            if word in vocab or stem(word) in stems:
-                out.append((text, word))
-    return out
 
 
 def all_query_texts(queries: Sequence[Query] = QUERIES, contrasts: Sequence[Contrast] = CONTRASTS) -> list[str]:
@@ -815,7 +783,7 @@ def main(argv: Sequence[str] | None = None) -> list[Result]:
     vocab = sorted({w for item in gallery for w in words_of(item.text)})
     print(f"gallery: {len(gallery)} distinct training captions ({single} single-action), {len(vocab)} words, "
           f"built in {time.perf_counter() - start:.0f} s")
-    violations = held_out_violations(all_query_texts(), [*vocab, *LEXICON])
+    violations = held_out_violations(all_query_texts(), [*vocab, *LEXICON], FUNCTION_WORDS)
     for text, word in violations:
         print(f"held-out violation: {word!r} in {text!r}")
     if violations:

@@ -52,6 +52,7 @@ from data.skeleton import Skeleton
 JOINTS_DIR = "new_joints"
 FEATURES_DIR = "new_joint_vecs"
 TEXTS_DIR = "texts"
+PARAPHRASES_DIR = "paraphrases"  # optional held-out captions of the test clips (pipelines/paraphrase.py)
 ACTIONS_FILE = "actions.txt"
 SPLITS: tuple[str, ...] = ("train", "val", "test")
 SOURCES: tuple[str, ...] = ("auto", "joints", "features")

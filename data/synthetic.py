@@ -63,6 +63,7 @@ class SyntheticConfig:
         mix_prob: probability that a carrier action takes an upper-body action on top.
         span_prob: probability that a long segment of a multi-action motion gets a span caption.
         captions_per_motion: [min, max] whole-clip captions per motion.
+        paraphrases: held-out paraphrases (data/paraphrase_text.py) written per test item (0: none).
         seated_start: probability that a motion starts seated.
         pelvis_height: [min, max] standing pelvis height of the bodies (m).
         style: amount of personal posture and drift added to the upper body (0: none).
@@ -79,6 +80,7 @@ class SyntheticConfig:
     mix_prob: float = 0.3
     span_prob: float = 0.4
     captions_per_motion: tuple[int, int] = (3, 5)
+    paraphrases: int = 3
     seated_start: float = 0.05
     pelvis_height: tuple[float, float] = (0.9, 1.0)
     style: float = 1.0
@@ -99,6 +101,8 @@ class SyntheticConfig:
         lo, hi = self.captions_per_motion
         if not 1 <= lo <= hi:
             raise ValueError("synthetic.captions_per_motion must be [min, max] with 1 <= min <= max")
+        if isinstance(self.paraphrases, bool) or not isinstance(self.paraphrases, int) or self.paraphrases < 0:
+            raise ValueError(f"synthetic.paraphrases must be an integer >= 0, got {self.paraphrases!r}")
 
     @classmethod
     def from_params(cls, section: Mapping | None) -> SyntheticConfig:
@@ -126,6 +130,7 @@ class SyntheticMotion:
         segments: the actions in order, with their parameters.
         windows: [start, end) frames of each segment.
         steady: steady-speed frames of each locomotion segment (else None).
+        postures: the posture ("stand"/"sit") each segment starts in.
     """
 
     clip_id: str
@@ -135,6 +140,7 @@ class SyntheticMotion:
     segments: list[Segment]
     windows: list[tuple[int, int]]
     steady: list[tuple[int, int] | None]
+    postures: list[str]
 
     @property
     def action(self) -> str | None:
@@ -233,7 +239,8 @@ def generate_motion(seed: int, index: int, config: SyntheticConfig) -> Synthetic
     count = int(rng.integers(config.captions_per_motion[0], config.captions_per_motion[1] + 1))
     postures = [state.posture] + [p.end.posture for p in pieces[:-1]]
     captions = describe(segments, windows, postures, len(joints), rng, count, config.span_prob)
-    return SyntheticMotion(motion_id(index), joints, captions, _label(segments, windows), segments, windows, steady)
+    return SyntheticMotion(motion_id(index), joints, captions, _label(segments, windows), segments, windows, steady,
+                           postures)
 
 
 # --- mirroring -------------------------------------------------------------------------------

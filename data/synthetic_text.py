@@ -57,30 +57,32 @@ _IRREGULAR = {"do": ("does", "doing"), "run": ("runs", "running"), "sit": ("sits
               "jab": ("jabs", "jabbing"), "go": ("goes", "going"), "swing": ("swings", "swinging")}
 
 
-def verb_forms(lemma: str) -> tuple[str, str]:
-    """(third person singular, -ing form) of a verb."""
-    if lemma in _IRREGULAR:
-        return _IRREGULAR[lemma]
+def verb_forms(lemma: str, irregular: Mapping[str, tuple[str, str]] = _IRREGULAR) -> tuple[str, str]:
+    """(third person singular, -ing form) of a verb; ``irregular`` lists the exceptions."""
+    if lemma in irregular:
+        return irregular[lemma]
     third = lemma + "es" if lemma.endswith(("sh", "ch", "s", "x", "o")) else lemma + "s"
     gerund = lemma[:-1] + "ing" if lemma.endswith("e") and not lemma.endswith("ee") else lemma + "ing"
     return third, gerund
 
 
-def _build_lexicon() -> dict[str, tuple[str, str]]:
-    """word -> (POS, lemma); the first POS listed for a word wins."""
+def build_lexicon(words: Mapping[str, str], plurals: Mapping[str, str],
+                  irregular: Mapping[str, tuple[str, str]] = _IRREGULAR) -> dict[str, tuple[str, str]]:
+    """word -> (POS, lemma) of space-separated ``words`` per POS, noun ``plurals`` -> lemma and
+    every inflected form of the verbs; the first POS listed for a word wins."""
     lexicon: dict[str, tuple[str, str]] = {}
-    for pos, words in _WORDS.items():
-        for word in words.split():
+    for pos, listed in words.items():
+        for word in listed.split():
             lexicon.setdefault(word, (pos, word))
-    for plural, lemma in _PLURALS.items():
+    for plural, lemma in plurals.items():
         lexicon.setdefault(plural, ("NOUN", lemma))
-    for lemma in _WORDS["VERB"].split():
-        for form in verb_forms(lemma):
+    for lemma in words["VERB"].split():
+        for form in verb_forms(lemma, irregular):
             lexicon.setdefault(form, ("VERB", lemma))
     return lexicon
 
 
-LEXICON: dict[str, tuple[str, str]] = _build_lexicon()
+LEXICON: dict[str, tuple[str, str]] = build_lexicon(_WORDS, _PLURALS)
 """word -> (POS, lemma) for every word the grammar can write."""
 
 
@@ -88,11 +90,12 @@ Word = tuple[str, str | None]
 """A written word and, for an inflected verb, its lemma (else None: looked up in the lexicon)."""
 
 
-def tokens_of(words: Sequence[Word]) -> tuple[tuple[str, str], ...]:
+def tokens_of(words: Sequence[Word], lexicon: Mapping[str, tuple[str, str]] = LEXICON
+              ) -> tuple[tuple[str, str], ...]:
     """HumanML3D tokens: alphabetic words with their POS, NOUN and VERB words lemmatised.
 
     Raises:
-        KeyError: a word missing from :data:`LEXICON` (a grammar bug).
+        KeyError: a word missing from ``lexicon`` (a grammar bug).
     """
     tokens = []
     for word, verb in words:
@@ -102,9 +105,9 @@ def tokens_of(words: Sequence[Word]) -> tuple[tuple[str, str], ...]:
         word = "".join(ch for ch in word.lower() if ch.isalpha())
         if not word:
             continue
-        if word not in LEXICON:
+        if word not in lexicon:
             raise KeyError(f"word {word!r} is not in the lexicon")
-        pos, lemma = LEXICON[word]
+        pos, lemma = lexicon[word]
         tokens.append((lemma if pos in ("NOUN", "VERB") else word, pos))
     return tuple(tokens)
 
@@ -370,16 +373,18 @@ SUBJECTS: tuple[Subject, ...] = tuple(
     )
     for poss in possessives
 )
-_THIRD, _GERUND = 0, 1
+THIRD, GERUND = 0, 1
 
 
-def _words(template: str, subject: Subject, form: int) -> list[Word]:
-    """Fill a clause template for ``subject`` and inflect its verbs (third person or -ing)."""
+def fill_template(template: str, subject: Subject, form: int,
+                  irregular: Mapping[str, tuple[str, str]] = _IRREGULAR) -> list[Word]:
+    """Fill a clause template for ``subject`` and inflect its verbs (``THIRD`` person or ``GERUND``)."""
     text = template.format(poss=subject.possessive, refl=subject.reflexive)
-    return [(verb_forms(w[1:])[form], w[1:]) if w.startswith("~") else (w, None) for w in text.split()]
+    return [(verb_forms(w[1:], irregular)[form], w[1:]) if w.startswith("~") else (w, None) for w in text.split()]
 
 
-def _plain(text: str) -> list[Word]:
+def plain_words(text: str) -> list[Word]:
+    """Words written as they are (no verb to inflect)."""
     return [(w, None) for w in text.split()]
 
 
@@ -387,46 +392,47 @@ def _clause(segment: Segment, subject: Subject, rng: np.random.Generator, form: 
     """Words describing one segment, with its upper-body action if it has one."""
     main = str(rng.choice(CLAUSES[segment.kind](segment.params)))
     if segment.upper is None:
-        return _words(main, subject, form)
+        return fill_template(main, subject, form)
     upper = str(rng.choice(CLAUSES[segment.upper.kind](segment.upper.params)))
     pattern = int(rng.integers(3))
     if pattern == 0:
-        return _words(main, subject, form) + _plain("while") + _words(upper, subject, _GERUND)
+        return fill_template(main, subject, form) + plain_words("while") + fill_template(upper, subject, GERUND)
     if pattern == 1:
-        return _words(upper, subject, form) + _plain("while") + _words(main, subject, _GERUND)
-    return _words(main, subject, form) + _plain("and") + _words(upper, subject, form) + _plain("at the same time")
+        return fill_template(upper, subject, form) + plain_words("while") + fill_template(main, subject, GERUND)
+    return (fill_template(main, subject, form) + plain_words("and") + fill_template(upper, subject, form)
+            + plain_words("at the same time"))
 
 
 def _join(subject: Subject, segments: Sequence[Segment], rng: np.random.Generator) -> list[Word]:
     """One sentence about ``segments`` in time order."""
-    head = _plain(subject.words)
+    head = plain_words(subject.words)
     if len(segments) == 1:
         if rng.random() < 0.25:
-            return head + _plain("is") + _clause(segments[0], subject, rng, _GERUND)
-        return head + _clause(segments[0], subject, rng, _THIRD)
+            return head + plain_words("is") + _clause(segments[0], subject, rng, GERUND)
+        return head + _clause(segments[0], subject, rng, THIRD)
     if len(segments) == 2:
         pattern = int(rng.integers(5))
-        first = _clause(segments[0], subject, rng, _THIRD)
+        first = _clause(segments[0], subject, rng, THIRD)
         if pattern == 4:
-            return head + first + _plain("before") + _clause(segments[1], subject, rng, _GERUND)
-        lead = _plain("first" if pattern == 2 else "")
-        link = _plain((", then", "and then", ", then", ", and after that")[pattern])
-        return head + lead + first + link + _clause(segments[1], subject, rng, _THIRD)
-    first, second, third = (_clause(s, subject, rng, _THIRD) for s in segments)
+            return head + first + plain_words("before") + _clause(segments[1], subject, rng, GERUND)
+        lead = plain_words("first" if pattern == 2 else "")
+        link = plain_words((", then", "and then", ", then", ", and after that")[pattern])
+        return head + lead + first + link + _clause(segments[1], subject, rng, THIRD)
+    first, second, third = (_clause(s, subject, rng, THIRD) for s in segments)
     pattern = int(rng.integers(3))
     links = ((",", ", and then"), (", then", ", and finally"), (", then", "and then"))[pattern]
-    lead = _plain("first" if pattern == 2 else "")
-    return head + lead + first + _plain(links[0]) + second + _plain(links[1]) + third
+    lead = plain_words("first" if pattern == 2 else "")
+    return head + lead + first + plain_words(links[0]) + second + plain_words(links[1]) + third
 
 
-def _articles(words: list[Word]) -> list[Word]:
+def fix_articles(words: list[Word]) -> list[Word]:
     """"a" or "an" as the next word needs."""
     nexts = [w for w, _ in words[1:]] + ["x"]
     pairs = zip(words, nexts, strict=True)
     return [(("an" if nxt[0] in "aeiou" else "a"), v) if w in ("a", "an") else (w, v) for (w, v), nxt in pairs]
 
 
-def _text(words: Sequence[Word], rng: np.random.Generator) -> str:
+def caption_text(words: Sequence[Word], rng: np.random.Generator) -> str:
     """Caption text of words: commas attached, sometimes a full stop."""
     text = " ".join(w for w, _ in words).replace(" ,", ",")
     return text + "." if rng.random() < 0.5 else text
@@ -447,8 +453,8 @@ def caption(segments: Sequence[Segment], rng: np.random.Generator, start: float 
     subject = SUBJECTS[int(rng.integers(len(SUBJECTS)))]
     if seated and segments[0].kind != "stand_up":
         subject = _seated(subject)
-    words = _articles(_join(subject, segments, rng))
-    return Caption(_text(words, rng), tokens_of(words), start, end)
+    words = fix_articles(_join(subject, segments, rng))
+    return Caption(caption_text(words, rng), tokens_of(words), start, end)
 
 
 def describe(segments: Sequence[Segment], windows: Sequence[tuple[int, int]], postures: Sequence[str],

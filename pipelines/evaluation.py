@@ -28,6 +28,15 @@ random frames at the row's density); their motions are also scored by the contro
 stream seeded by the density, so every row of one density (a ControlNet and the uncontrolled
 reference scored against its hints) is judged on the same keyframes.
 
+The rows named in ``paraphrase_rows`` (each family's headline row) are also scored for what their
+motions *do*, and for captions they never saw (:class:`Semantics`, :mod:`pipelines.paraphrase`):
+``action_accuracy`` is the action recogniser's accuracy on the row's motions of the draw's
+action-labelled items (the Real row gets it too: the ceiling), and a twin row ``<row>@paraphrase``
+answers the same items, lengths and seeds from held-out paraphrases of their captions. The twin is
+judged exactly as its row, against the draw's *original* captions: the evaluator's word vocabulary
+comes from the training captions, so it cannot read the paraphrases, and both captions state the same
+facts. It has no MultiModality and no timing.
+
 A generator too slow for the whole test set (e.g. a 1000-step DDPM on CPU) may carry an optional
 attribute ``eval_items`` = K (an int, or None for no bound; no other row sets it): in each replication
 it answers only the first K captions of the draw (the draw is shuffled, so a fresh random subset each
@@ -45,7 +54,7 @@ from __future__ import annotations
 
 import time
 import zlib
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -64,6 +73,8 @@ from models.generator import ControlledGenerator, ControlSpec, Generator, Hint, 
 from pipelines.checkpoint import load_final_model
 
 REAL = "Real"
+#: Suffix of a row answering the held-out paraphrases (``evaluate.paraphrase_rows``).
+PARAPHRASE = "@paraphrase"
 #: Captions every generator is timed on before ``evaluate.timing_seconds`` may stop its timing.
 MIN_TIMED_SENTENCES = 3
 
@@ -82,6 +93,7 @@ class EvalConfig:
     timing_seconds: float | None = None
     unit_length: int = 4
     seed: int = 0
+    paraphrase_rows: Sequence[str] = ()
 
 
 def build_evaluator(config: EvaluatorConfig, mean: Sequence[float], std: Sequence[float],
@@ -143,6 +155,23 @@ class Draw:
     tokens: list[list[str]]
     lengths: np.ndarray
     real: np.ndarray  # (B, max L', D) raw features
+    item_ids: list[str]  # the store item each row answers
+
+
+@dataclass
+class Semantics:
+    """Scores beyond the T2M evaluator, for the rows in ``evaluate.paraphrase_rows`` (built by
+    :func:`pipelines.paraphrase.semantics`).
+
+    Attributes:
+        paraphrase: the held-out paraphrase of each item of a draw in replication r (a TextBatch in
+            the draw's order), or None when the dataset has no paraphrase set.
+        action_accuracy: the action recogniser's accuracy on raw motions answering a draw, over the
+            draw's action-labelled items (None when it has none).
+    """
+
+    paraphrase: Callable[[Draw, int], TextBatch] | None
+    action_accuracy: Callable[[np.ndarray, Draw], float | None]
 
 
 def draw(items: Sequence[StoredItem], rng: np.random.Generator, unit: int) -> Draw:
@@ -161,7 +190,7 @@ def draw(items: Sequence[StoredItem], rng: np.random.Generator, unit: int) -> Dr
         tokens=[item.text_tokens[c] for item, c in zip(chosen, captions, strict=True)],
     )
     tokens = [item.tokens[c] for item, c in zip(chosen, captions, strict=True)]
-    return Draw(text, tokens, lengths, pad_motions(crops, lengths))
+    return Draw(text, tokens, lengths, pad_motions(crops, lengths), [item.item_id for item in chosen])
 
 
 def physical(raw: np.ndarray, lengths: np.ndarray, skeleton: Skeleton) -> dict[str, float]:
@@ -351,7 +380,7 @@ def subset_reference(ref: Reference, k: int) -> Reference:
     caption embeddings, and the same FID reference statistics."""
     d, index = ref.draw, np.arange(k)
     lengths = d.lengths[:k]
-    sub = Draw(d.text.select(index), d.tokens[:k], lengths, d.real[:k, : int(lengths.max())])
+    sub = Draw(d.text.select(index), d.tokens[:k], lengths, d.real[:k, : int(lengths.max())], d.item_ids[:k])
     return Reference(sub, ref.text_emb[:k], ref.ref_mu, ref.ref_sigma)
 
 
@@ -364,11 +393,15 @@ def _row_metrics(name: str, raw: np.ndarray, ref: Reference, embedder: MotionEmb
 
 def replicate(ref: Reference, r: int, embedder: MotionEmbedder, skeleton: Skeleton, cfg: EvalConfig,
               mean: np.ndarray, std: np.ndarray, generators: Sequence[Generator] = (),
-              reconstructors: Sequence[Reconstructor] = (), real: bool = False) -> dict[str, dict[str, float]]:
-    """Metrics of the Real row (``real``), every reconstructor and every generator for replication ``r``."""
+              reconstructors: Sequence[Reconstructor] = (), real: bool = False,
+              semantics: Semantics | None = None) -> dict[str, dict[str, float]]:
+    """Metrics of the Real row (``real``), every reconstructor and every generator for replication ``r``;
+    with ``semantics``, the action accuracy of Real and of the ``paraphrase_rows`` and their paraphrase rows."""
     d, result = ref.draw, {}
     if real:
         result[REAL] = _row_metrics(REAL, d.real, ref, embedder, skeleton, cfg, row_rng(cfg, r, REAL))
+        if semantics is not None:
+            result[REAL] |= _action_accuracy(semantics, d.real, d)
     for rec in reconstructors:
         raw = denormalise(rec.reconstruct((d.real - mean) / std, d.lengths), mean, std)
         result[rec.name] = _row_metrics(rec.name, raw, ref, embedder, skeleton, cfg, row_rng(cfg, r, rec.name))
@@ -390,7 +423,21 @@ def replicate(ref: Reference, r: int, embedder: MotionEmbedder, skeleton: Skelet
             result[gen.name] |= M.control_errors(joints, hint.joints, hint.mask)
         if gen.stochastic and k is None and cfg.mm_repeats > cfg.mm_times:
             result[gen.name]["MultiModality"] = multimodality(gen, d, embedder, mean, std, cfg, r, rng, hint)
+        if semantics is not None and gen.name in cfg.paraphrase_rows:
+            result[gen.name] |= _action_accuracy(semantics, raw, g_draw)
+            if semantics.paraphrase is not None:
+                name = gen.name + PARAPHRASE
+                text = semantics.paraphrase(g_draw, r)
+                raw = denormalise(sample_rows(gen, text, g_draw.lengths, r, hint, np.arange(len(g_draw.lengths))),
+                                  mean, std)
+                result[name] = _row_metrics(name, raw, g_ref, embedder, skeleton, g_cfg, row_rng(cfg, r, name))
+                result[name] |= _action_accuracy(semantics, raw, g_draw)
     return result
+
+
+def _action_accuracy(semantics: Semantics, raw: np.ndarray, d: Draw) -> dict[str, float]:
+    accuracy = semantics.action_accuracy(raw, d)
+    return {} if accuracy is None else {"action_accuracy": accuracy}
 
 
 def _hint_of(gen: Generator, d: Draw, cfg: EvalConfig, r: int, skeleton: Skeleton) -> Hint | None:
@@ -414,9 +461,10 @@ def aggregate(per_replication: Sequence[Mapping[str, Mapping[str, float]]]) -> d
 
 def evaluate(refs: Sequence[Reference], items: Sequence[StoredItem], mean: np.ndarray, std: np.ndarray,
              embedder: MotionEmbedder, skeleton: Skeleton, cfg: EvalConfig, generators: Sequence[Generator] = (),
-             reconstructors: Sequence[Reconstructor] = (), real: bool = False) -> dict[str, dict[str, float]]:
+             reconstructors: Sequence[Reconstructor] = (), real: bool = False,
+             semantics: Semantics | None = None) -> dict[str, dict[str, float]]:
     """The protocol over ``refs`` (one per replication), aggregated, plus timings of each generator."""
-    reps = [replicate(ref, r, embedder, skeleton, cfg, mean, std, generators, reconstructors, real)
+    reps = [replicate(ref, r, embedder, skeleton, cfg, mean, std, generators, reconstructors, real, semantics)
             for r, ref in enumerate(refs)]
     table = aggregate(reps) if reps and reps[0] else {}
     timing_draw = draw(items, np.random.default_rng([cfg.seed, cfg.replications]), cfg.unit_length)

@@ -7,7 +7,9 @@
 - ``metrics.json``: one object per row with ``R_precision_top1/2/3``, ``FID``, ``MM_Dist``,
   ``Diversity``, ``MultiModality`` (stochastic generators only), ``AITS_s``, ``ms_per_frame`` and
   ``NFE`` (generators only), ``MPJPE_mm`` (reconstructions only), physical measures, and
-  ``<key>_ci`` for each replicated metric. A metric that does not apply to a row is absent.
+  ``<key>_ci`` for each replicated metric, ``action_accuracy`` for Real and the rows of
+  ``evaluate.paraphrase_rows``, whose twins ``<row>@paraphrase`` answer held-out paraphrases
+  (:mod:`pipelines.paraphrase`). A metric that does not apply to a row is absent.
 - ``samples/<row>_<k>.gif``: the fixed prompts of ``evaluate.samples`` for the chosen rows.
 
 A family whose rows are action-conditioned (:class:`pipelines.action_evaluation.ActionGenerator`)
@@ -32,6 +34,7 @@ from typing import Any
 import numpy as np
 
 from data.atomic import atomic_directory, check_output
+from data.humanml3d import PARAPHRASES_DIR
 from data.render import render_animation
 from data.skeleton import get_skeleton
 from models.generator import Generator, Reconstructor
@@ -39,11 +42,12 @@ from pipelines.action_evaluation import ActionGenerator, evaluate_action_rows, l
 from pipelines.cli import HELP_FLAGS, artifacts_dir, repo_path, run_main
 from pipelines.config import check_fields, check_keys, check_number, check_type
 from pipelines.evaluation import EvalConfig, evaluate, load_evaluator, load_references, references, save_references
+from pipelines.paraphrase import semantics
 from pipelines.registry import FAMILIES, EvalContext, family
 
 REAL = "real"
 #: Params every evaluation stage reads; a family's stage also reads its registry entry's ``params``.
-PARAMS = ("evaluate", "features.out", "data.name", "data.skeleton", "paths.artifacts")
+PARAMS = ("evaluate", "features.out", "data.root", "data.name", "data.skeleton", "paths.artifacts")
 REFERENCES = "references.npz"
 #: The evaluator stage's output holding the action recogniser.
 RECOGNISER = "train_evaluator_recogniser"
@@ -69,6 +73,9 @@ def check_section(params: dict[str, Any]) -> None:
         check_number(cfg, key, "evaluate", low=0, integer=True)
     if cfg.get("timing_seconds") is not None:
         check_number(cfg, "timing_seconds", "evaluate", low=0.0, low_open=True)
+    rows = cfg.get("paraphrase_rows", [])
+    if not isinstance(rows, list) or not all(isinstance(row, str) for row in rows):
+        raise ValueError(f"evaluate.paraphrase_rows must be a list of row names, got {rows!r}")
     samples = check_keys(cfg.get("samples"), "evaluate.samples", ("rows", "length", "prompts"))
     check_type(samples, "rows", "evaluate.samples", kind=list)
     check_number(samples, "length", "evaluate.samples", low=4, high=196, integer=True)
@@ -100,8 +107,9 @@ def run(name: str, params: dict[str, Any]) -> dict[str, dict[str, float]]:
     check_output(out, owner="evaluate")
     rows = [] if name == REAL else family(name).build_rows(ctx)
     actions = [row for row in rows if isinstance(row, ActionGenerator)]
+    recogniser = load_recogniser(ctx.trained(RECOGNISER))
     if actions:  # the action-to-motion protocol: the recogniser, not the T2M evaluator
-        table = evaluate_action_rows(actions, ctx.store, load_recogniser(ctx.trained(RECOGNISER)), cfg.replications,
+        table = evaluate_action_rows(actions, ctx.store, recogniser, cfg.replications,
                                      cfg.seed, diversity_times=cfg.diversity_times, mm_times=cfg.mm_times,
                                      unit_length=cfg.unit_length)
         with atomic_directory(out, owner="evaluate") as tmp:
@@ -110,9 +118,14 @@ def run(name: str, params: dict[str, Any]) -> dict[str, dict[str, float]]:
     test = ctx.store.split("test")
     embedder = load_evaluator(ctx.trained("train_evaluator"))
     skeleton = get_skeleton(params["data"]["skeleton"])
+    headline = any(row.name in cfg.paraphrase_rows for row in rows)
+    sem = semantics(repo_path(params, "data.root"), test, ctx.store, recogniser, cfg.seed, skeleton.fps,
+                    paraphrases=headline)
+    if headline and sem.paraphrase is None:
+        print(f"eval_{name}: {params['data']['root']} has no {PARAPHRASES_DIR}/: no paraphrase rows")
     if name == REAL:
         refs = references(test, embedder, cfg)
-        table = evaluate(refs, test, ctx.store.mean, ctx.store.std, embedder, skeleton, cfg, real=True)
+        table = evaluate(refs, test, ctx.store.mean, ctx.store.std, embedder, skeleton, cfg, real=True, semantics=sem)
         meta = {"dataset": params["data"]["name"], "test_items": len(test), "replications": cfg.replications}
         with atomic_directory(out, owner="evaluate") as tmp:
             save_references(tmp / REFERENCES, refs)
@@ -122,7 +135,8 @@ def run(name: str, params: dict[str, Any]) -> dict[str, dict[str, float]]:
     refs = load_references(artifacts / "eval" / REAL / REFERENCES, test, cfg)
     generators = [row for row in rows if isinstance(row, Generator)]
     reconstructors = [row for row in rows if isinstance(row, Reconstructor) and not isinstance(row, Generator)]
-    table = evaluate(refs, test, ctx.store.mean, ctx.store.std, embedder, skeleton, cfg, generators, reconstructors)
+    table = evaluate(refs, test, ctx.store.mean, ctx.store.std, embedder, skeleton, cfg, generators, reconstructors,
+                     semantics=sem)
     with atomic_directory(out, owner="evaluate") as tmp:
         (tmp / "metrics.json").write_text(json.dumps(table, indent=2) + "\n")
         render_samples(generators, ctx, tmp / "samples")

@@ -4,6 +4,7 @@
 (plus mirrors) from ``seed`` (data/synthetic.py) and writes, atomically::
 
     new_joints/<id>.npy  texts/<id>.txt  train.txt val.txt test.txt  actions.txt
+    paraphrases/<id>.txt         held-out paraphrases of the test clips (data/paraphrase_text.py)
     stats.json                   counts, vocabulary, lengths, speeds, foot skating, floor contact
     preview/<id>.gif             a few motions as animations, with their first caption
     preview/contact_sheet.png    one panel per action class (no preview/ when synthetic.previews=0)
@@ -19,14 +20,18 @@ from __future__ import annotations
 
 import json
 import time
+import zlib
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 from tqdm import tqdm
 
 from data.atomic import atomic_directory, check_output
+from data.humanml3d import PARAPHRASES_DIR
 from data.humanml3d_writer import write_dataset
+from data.paraphrase_text import paraphrases, words_of
 from data.render import contact_sheet, render_animation
 from data.skeleton import HUMANML3D
 from data.synthetic import SyntheticConfig, SyntheticMotion, dataset_stats, generate, make_splits
@@ -34,6 +39,7 @@ from pipelines.cli import artifacts_dir, run_main
 from pipelines.config import check_fields
 
 SHEET_PANELS = 20
+PARAPHRASE_STREAM = zlib.crc32(b"paraphrase")
 
 
 def preview_motions(motions: Sequence[SyntheticMotion], count: int) -> list[SyntheticMotion]:
@@ -57,6 +63,25 @@ def write_previews(folder: Path, motions: Sequence[SyntheticMotion], gifs: int) 
                   [f"[{m.label}] {m.captions[0].text}" for m in sheet], HUMANML3D)
 
 
+def write_paraphrases(folder: Path, motions: Sequence[SyntheticMotion], clip_ids: Sequence[str], seed: int,
+                      count: int) -> dict[str, int]:
+    """``count`` held-out paraphrases of each item of the ``clip_ids`` motions, one caption file per
+    clip; returns their number and vocabulary size. Each clip's stream is seeded by ``seed`` and its
+    id, apart from the training captions' streams, which stay as they are."""
+    folder.mkdir()
+    wanted, words, total = set(clip_ids), set(), 0
+    for m in motions:
+        if m.clip_id not in wanted:
+            continue
+        rng = np.random.default_rng([seed, PARAPHRASE_STREAM, zlib.crc32(m.clip_id.encode())])
+        spans = [c for c in m.captions if not c.is_whole_clip]
+        captions = paraphrases(m.segments, m.windows, m.postures, len(m.joints), spans, rng, count)
+        (folder / f"{m.clip_id}.txt").write_text("".join(c.to_line() + "\n" for c in captions), encoding="utf-8")
+        words.update(w for c in captions for w in words_of(c.text))
+        total += len(captions)
+    return {"captions": total, "vocabulary_size": len(words)}
+
+
 def build_dataset(root: Path, config: SyntheticConfig, seed: int) -> dict:
     """Generate, write, preview and describe the dataset in ``root`` atomically; returns the stats."""
     check_output(root, owner="make_dataset")
@@ -68,6 +93,9 @@ def build_dataset(root: Path, config: SyntheticConfig, seed: int) -> dict:
     stats = dataset_stats(motions)
     with atomic_directory(root, owner="make_dataset") as tmp:
         write_dataset(tmp, (m.clip() for m in motions), splits, skeleton=HUMANML3D)
+        if config.paraphrases > 0:
+            stats["paraphrases"] = write_paraphrases(tmp / PARAPHRASES_DIR, motions, splits["test"], seed,
+                                                     config.paraphrases)
         if config.previews > 0:
             write_previews(tmp / "preview", motions, config.previews)
         (tmp / "stats.json").write_text(json.dumps(stats, indent=2) + "\n", encoding="utf-8")

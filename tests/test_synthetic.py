@@ -10,7 +10,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from data.humanml3d import read_split
+from data.humanml3d import read_captions, read_split
+from data.paraphrase_text import SHARED_WORDS, held_out_violations
 from data.physics import foot_skating_ratio, skating_frames
 from data.skeleton import HUMANML3D
 from data.synthetic import (
@@ -344,12 +345,22 @@ def test_the_reader_accepts_the_dataset(dataset):
 
 
 @pytest.mark.slow
+def test_the_test_clips_and_only_they_get_held_out_paraphrases(dataset):
+    root, stats = dataset
+    test_ids = (root / "test.txt").read_text().split()
+    assert sorted(p.stem for p in (root / "paraphrases").glob("*.txt")) == sorted(test_ids)
+    texts = [c.text for i in test_ids for c in read_captions(root / "paraphrases" / f"{i}.txt")]
+    assert len(texts) == stats["paraphrases"]["captions"] >= SMOKE.paraphrases * len(test_ids)
+    assert held_out_violations(texts, LEXICON, SHARED_WORDS) == []
+
+
+@pytest.mark.slow
 def test_previews_and_stats_are_written(dataset, motions):
     root, stats = dataset
     assert (root / "preview" / "contact_sheet.png").stat().st_size > 10_000
     assert len(list((root / "preview").glob("*.gif"))) == SMOKE.previews
     assert json.loads((root / "stats.json").read_text()) == stats
-    assert stats == dataset_stats(motions)
+    assert {k: v for k, v in stats.items() if k != "paraphrases"} == dataset_stats(motions)
     assert stats["motions"] == 2 * SMOKE.num_motions and stats["foot_skating_ratio"] < 0.05
     assert stats["lowest_joint_m"] >= -0.01 and stats["vocabulary_size"] > 100
     assert {"walk_forward", "run"} <= set(stats["mean_speed_mps"])
