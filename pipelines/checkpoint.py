@@ -8,7 +8,9 @@ A checkpoint directory holds:
   states. Ray Train merges the directories that all ranks report into one.
 
 The final model of a stage is ``<out_dir>/model.pt`` (see :func:`final_model_payload`),
-and the whole out dir is written atomically with :func:`data.atomic.atomic_directory`.
+and the whole out dir is written atomically with :func:`data.atomic.atomic_directory`. A stage
+that trained nothing (``pipelines.stage``: its data cannot feed it) leaves only ``skipped.json``
+with the reason (:func:`skipped`).
 
 Every file is read with ``torch.load(weights_only=True)``: a ``.pt`` file is a pickle, and an
 unrestricted unpickler runs whatever code the file names. Checkpoints live in the Ray storage
@@ -22,6 +24,7 @@ file; nothing in it is executed.
 
 from __future__ import annotations
 
+import json
 import os
 import random
 import re
@@ -228,3 +231,12 @@ def save_final_model(out_dir: Path, payload: Mapping[str, Any]) -> None:
 def load_final_model(out_dir: Path) -> dict[str, Any]:
     """Read ``<out_dir>/model.pt`` (safely: see the module docstring): ``{"models", "ema", "config", "step"}``."""
     return _safe_load(Path(out_dir) / MODEL_FILE, MODEL_FORMAT_VERSION, MODEL_KEYS)
+
+
+SKIPPED = "skipped.json"
+
+
+def skipped(out_dir: Path) -> str | None:
+    """The reason a training stage's output folder records for having trained nothing, or None."""
+    path = Path(out_dir) / SKIPPED
+    return json.loads(path.read_text(encoding="utf-8"))["reason"] if path.is_file() else None

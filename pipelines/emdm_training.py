@@ -26,7 +26,7 @@ from models.emdm import (
 from pipelines.cli import repo_path
 from pipelines.config import check_fields, check_number
 from pipelines.feature_store import FeatureStore
-from pipelines.recogniser import ActionClips, action_classes
+from pipelines.recogniser import ActionClips, action_classes, missing_actions
 from pipelines.runner import Components, StepContext, TrainSpec
 from pipelines.stage import TrainingStage
 
@@ -186,4 +186,5 @@ def training_stage(section: str, module: str) -> TrainingStage:
         spec=TrainSpec(build=build, dataset=dataset, step=step, collate=collate_trimmed),
         inputs=("features_dir",), params=(section, "features.out", "paths", "ray"), max_workers=1,
         check=lambda params: check_section(params[section], section),
+        skip=lambda params: missing_actions(params) if params[section]["condition"] == "action" else None,
     )

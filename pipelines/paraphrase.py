@@ -82,10 +82,12 @@ def paraphrase_sampler(by_item: dict[str, list[str]], store: FeatureStore, seed:
     return paraphrase
 
 
-def accuracy_scorer(items: Sequence[StoredItem], recogniser: ActionRecogniser, mean: np.ndarray, std: np.ndarray
-                    ) -> Callable[[np.ndarray, Draw], float | None]:
-    """The ``Semantics.action_accuracy`` function over the labelled whole-clip items of a draw."""
-    labels = {item.item_id: item.action for item in labelled_items(items, recogniser.config.classes)}
+def accuracy_scorer(items: Sequence[StoredItem], recogniser: ActionRecogniser | None, mean: np.ndarray,
+                    std: np.ndarray) -> Callable[[np.ndarray, Draw], float | None]:
+    """The ``Semantics.action_accuracy`` function over the labelled whole-clip items of a draw (none
+    without a recogniser: a dataset without action labels)."""
+    labels = {} if recogniser is None else {
+        item.item_id: item.action for item in labelled_items(items, recogniser.config.classes)}
 
     def accuracy(raw: np.ndarray, d: Draw) -> float | None:
         rows = [k for k, i in enumerate(d.item_ids) if i in labels]
@@ -97,7 +99,7 @@ def accuracy_scorer(items: Sequence[StoredItem], recogniser: ActionRecogniser, m
     return accuracy
 
 
-def semantics(root: Path, items: Sequence[StoredItem], store: FeatureStore, recogniser: ActionRecogniser,
+def semantics(root: Path, items: Sequence[StoredItem], store: FeatureStore, recogniser: ActionRecogniser | None,
               seed: int, fps: float, paraphrases: bool = True) -> Semantics:
     """The recogniser and, with ``paraphrases``, the paraphrase set of ``root`` (if it has one), as the
     evaluation uses them."""

@@ -209,6 +209,17 @@ def check_section(section: Any, where: str = GROUP) -> dict[str, Any]:
     return dict(section)
 
 
+def missing_actions(params: dict[str, Any]) -> str | None:
+    """Why the action stages train nothing on this dataset (fewer than 2 action labels in its training
+    split: a real dataset without ``actions.txt``), or None."""
+    store = FeatureStore(repo_path(params, "features.out"))
+    classes = action_classes(store.split("train"))
+    if len(classes) >= 2:
+        return None
+    return (f"{store.path}: the training split has {len(classes)} action label(s), the action stages need at "
+            "least 2 (the dataset has no actions.txt)")
+
+
 def recogniser_config(params: dict[str, Any]) -> dict[str, Any]:
     """The run's own loop-config keys: store path, classes and sizes (``model``), statistics, crops."""
     cfg = check_section(param(params, GROUP))

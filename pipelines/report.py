@@ -9,6 +9,7 @@ from typing import Any
 from matplotlib.figure import Figure
 
 REAL = "Real"
+PARAPHRASE = "@paraphrase"  # pipelines.evaluation.PARAPHRASE: rows answering the held-out paraphrases
 
 COLUMNS = [  # (metrics.json key, report header, decimals)
     ("R_precision_top1", "R@1 ↑", 3), ("R_precision_top2", "R@2 ↑", 3), ("R_precision_top3", "R@3 ↑", 3),
@@ -28,6 +29,10 @@ CONTROL_COLUMNS = [  # rows with control errors get a second, OmniControl-style 
 ACTION_COLUMNS = [  # action-to-motion rows (they have an Accuracy) get their own table: recogniser features
     ("Accuracy", "Accuracy ↑", 3), ("FID", "FID ↓", 3), ("Diversity", "Diversity →", 3),
     ("MultiModality", "MModality →", 3), ("NFE", "NFE", 0),
+]
+PARAPHRASE_COLUMNS = [  # Real, the headline rows and their paraphrase twins (they have an action_accuracy)
+    ("R_precision_top1", "R@1 ↑", 3), ("R_precision_top3", "R@3 ↑", 3), ("FID", "FID ↓", 3),
+    ("MM_Dist", "MM-Dist ↓", 3), ("Diversity", "Diversity →", 3), ("action_accuracy", "Action acc. ↑", 3),
 ]
 
 
@@ -73,15 +78,21 @@ def report_title(meta: dict[str, Any]) -> str:
 
 
 def report_sections(table: dict[str, dict[str, float]]) -> list[Section]:
-    """The paper-style table, then the control table if any row has one, then the action-to-motion table
-    if any row is action-conditioned (those rows are not in the first table)."""
+    """The paper-style table, then the control table if any row has one, then the paraphrase table if any
+    row answered paraphrases, then the action-to-motion table if any row is action-conditioned (paraphrase
+    and action rows are not in the first table)."""
     actions = {name: row for name, row in table.items() if "Accuracy" in row}
-    texts = {name: row for name, row in table.items() if name not in actions}
+    texts = {name: row for name, row in table.items() if name not in actions and not name.endswith(PARAPHRASE)}
+    semantic = {name: row for name, row in table.items() if "action_accuracy" in row}
     sections = [Section(None, texts, COLUMNS)]
     controlled = {name: row for name, row in texts.items() if "avg_err_m" in row}
     if controlled:
         sections.append(Section("Trajectory control (errors on the controlled keyframes of the test crops' own "
                                 "joints)", controlled, CONTROL_COLUMNS))
+    if any(name.endswith(PARAPHRASE) for name in semantic):
+        sections.append(Section("Held-out paraphrases (<row>@paraphrase: the same test items asked for in words "
+                                "no training caption uses, judged against the original captions; Action acc.: the "
+                                "action recogniser on the labelled single-action items)", semantic, PARAPHRASE_COLUMNS))
     if actions:
         sections.append(Section("Action-to-motion (the labelled single-action test motions; FID, Diversity and "
                                 "MultiModality in the action recogniser's features, not comparable with the table "

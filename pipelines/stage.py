@@ -20,16 +20,23 @@ This module supplies the rest, the same for every stage:
   code or inputs train from step 0 and an interrupted identical run resumes;
 - the stage sees only the params keys it declares (``params``), the list its DVC stage declares
   (``tests/test_dvc_deps.py``): reading any other key is an error, so the two cannot drift;
-- :func:`main` turns user errors (bad params, missing files) into one line and exit status 1.
+- :func:`main` turns user errors (bad params, missing files) into one line and exit status 1;
+- a stage whose ``skip`` gives a reason (e.g. a real dataset without action labels for the action
+  stages) trains nothing: its output folder holds only ``skipped.json`` with the reason, so DVC still
+  has its output and the evaluation leaves the rows that need it out
+  (:func:`pipelines.checkpoint.skipped`).
 """
 
 from __future__ import annotations
 
+import json
 import sys
 from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass
 from typing import Any
 
+from data.atomic import atomic_directory
+from pipelines.checkpoint import SKIPPED
 from pipelines.cli import artifacts_dir, param, run_main
 from pipelines.config import REPO_ROOT
 from pipelines.identity import fingerprint
@@ -52,6 +59,7 @@ class TrainingStage:
             ``ray.num_workers`` runs it on this many, with a note on the console.
         check: validates the stage's own params section before any work starts (a ValueError
             naming the key); the ``loop`` group and the shared sections are checked anyway.
+        skip: a reason not to train with these params (the data cannot feed the stage), or None.
     """
 
     name: str
@@ -63,6 +71,7 @@ class TrainingStage:
     loop_group: str = ""
     max_workers: int | None = None
     check: Callable[[dict[str, Any]], object] | None = None
+    skip: Callable[[dict[str, Any]], str | None] | None = None
 
     @property
     def loop_key(self) -> str:
@@ -116,6 +125,17 @@ def train(stage: TrainingStage, params: dict[str, Any], config: dict[str, Any] |
     return result
 
 
+def train_unless_skipped(stage: TrainingStage, params: dict[str, Any]) -> RunResult | None:
+    """:func:`train`, or, when ``stage.skip`` gives a reason, an output folder holding only that reason."""
+    reason = stage.skip(params) if stage.skip is not None else None
+    if reason is None:
+        return train(stage, params)
+    with atomic_directory(artifacts_dir(params) / stage.name, owner=stage.name) as tmp:
+        (tmp / SKIPPED).write_text(json.dumps({"stage": stage.name, "reason": reason}, indent=2) + "\n")
+    print(f"{stage.name}: trained nothing: {reason}")
+    return None
+
+
 def checks(stage: TrainingStage) -> list[Callable[[dict[str, Any]], object]]:
     """The up-front checks of ``stage``'s params: its ``loop`` group, then its own section."""
     loop = [lambda params: LoopSettings.parse(param(params, stage.loop_key), stage.loop_key)]
@@ -124,4 +144,4 @@ def checks(stage: TrainingStage) -> list[Callable[[dict[str, Any]], object]]:
 
 def main(stage: TrainingStage, argv: Sequence[str] | None = None) -> None:
     """``python -m stages.<name> [key=value ...] [--cfg] [--help]`` for a training stage."""
-    run_main(stage.name, lambda params: train(stage, params), stage.params, argv, checks(stage))
+    run_main(stage.name, lambda params: train_unless_skipped(stage, params), stage.params, argv, checks(stage))

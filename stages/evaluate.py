@@ -39,6 +39,7 @@ from data.render import render_animation
 from data.skeleton import get_skeleton
 from models.generator import Generator, Reconstructor
 from pipelines.action_evaluation import ActionGenerator, evaluate_action_rows, load_recogniser
+from pipelines.checkpoint import skipped
 from pipelines.cli import HELP_FLAGS, artifacts_dir, repo_path, run_main
 from pipelines.config import check_fields, check_keys, check_number, check_type
 from pipelines.evaluation import EvalConfig, evaluate, load_evaluator, load_references, references, save_references
@@ -105,9 +106,16 @@ def run(name: str, params: dict[str, Any]) -> dict[str, dict[str, float]]:
     cfg = eval_config(params["evaluate"])
     out = artifacts / "eval" / name
     check_output(out, owner="evaluate")
+    untrained = [] if name == REAL else [(stage, reason) for stage in family(name).train_stages
+                                         if (reason := skipped(artifacts / stage))]
+    if untrained:  # e.g. the action stages on a dataset without action labels
+        print(f"eval_{name}: no rows: {untrained[0][0]} trained nothing: {untrained[0][1]}")
+        with atomic_directory(out, owner="evaluate") as tmp:
+            (tmp / "metrics.json").write_text("{}\n")
+        return {}
     rows = [] if name == REAL else family(name).build_rows(ctx)
     actions = [row for row in rows if isinstance(row, ActionGenerator)]
-    recogniser = load_recogniser(ctx.trained(RECOGNISER))
+    recogniser = None if skipped(artifacts / RECOGNISER) else load_recogniser(ctx.trained(RECOGNISER))
     if actions:  # the action-to-motion protocol: the recogniser, not the T2M evaluator
         table = evaluate_action_rows(actions, ctx.store, recogniser, cfg.replications,
                                      cfg.seed, diversity_times=cfg.diversity_times, mm_times=cfg.mm_times,

@@ -31,7 +31,7 @@ from tqdm import tqdm
 from data.atomic import atomic_directory, check_output
 from data.humanml3d import PARAPHRASES_DIR
 from data.humanml3d_writer import write_dataset
-from data.paraphrase_text import paraphrases, words_of
+from data.paraphrase_text import paraphrases
 from data.render import contact_sheet, render_animation
 from data.skeleton import HUMANML3D
 from data.synthetic import SyntheticConfig, SyntheticMotion, dataset_stats, generate, make_splits
@@ -77,7 +77,7 @@ def write_paraphrases(folder: Path, motions: Sequence[SyntheticMotion], clip_ids
         spans = [c for c in m.captions if not c.is_whole_clip]
         captions = paraphrases(m.segments, m.windows, m.postures, len(m.joints), spans, rng, count)
         (folder / f"{m.clip_id}.txt").write_text("".join(c.to_line() + "\n" for c in captions), encoding="utf-8")
-        words.update(w for c in captions for w in words_of(c.text))
+        words.update(w for c in captions for w, _ in c.tokens)
         total += len(captions)
     return {"captions": total, "vocabulary_size": len(words)}
 

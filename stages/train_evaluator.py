@@ -45,9 +45,9 @@ from pipelines.feature_store import FeatureStore
 from pipelines.recogniser import GROUP as RECOGNISER_GROUP
 from pipelines.recogniser import SPEC as RECOGNISER_SPEC
 from pipelines.recogniser import check_section as check_recogniser
-from pipelines.recogniser import recogniser_config
+from pipelines.recogniser import missing_actions, recogniser_config
 from pipelines.runner import Components, StepContext, TrainSpec, ray_connection
-from pipelines.stage import TrainingStage, checks, loop_config, train
+from pipelines.stage import TrainingStage, checks, loop_config, train, train_unless_skipped
 
 if TYPE_CHECKING:
     from pipelines.sweep import SweepTarget
@@ -145,7 +145,7 @@ MATCHING = TrainingStage(
 RECOGNISER = TrainingStage(
     name="train_evaluator_recogniser", module=__name__, params=PARAMS, config=recogniser_config,
     spec=RECOGNISER_SPEC, inputs=("features_dir",), loop_group="train_evaluator.recogniser.loop",
-    check=lambda params: check_recogniser(param(params, RECOGNISER_GROUP)),
+    check=lambda params: check_recogniser(param(params, RECOGNISER_GROUP)), skip=missing_actions,
 )
 
 
@@ -155,7 +155,7 @@ def run(params: dict[str, Any]) -> Path:
     with ray_connection(params["ray"]):
         train(MOVEMENT, params)
         out = train(MATCHING, params).out_dir
-        train(RECOGNISER, params)
+        train_unless_skipped(RECOGNISER, params)
     return out
 
 

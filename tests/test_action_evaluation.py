@@ -8,9 +8,12 @@ has a predictable Accuracy, FID, Diversity and MultiModality.
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pytest
 import torch
+import yaml
 from torch import nn
 
 from data.store import StoredItem
@@ -25,7 +28,9 @@ from pipelines.action_evaluation import (
     per_action_multimodality,
     recognise,
 )
+from pipelines.config import REPO_ROOT
 from pipelines.recogniser import labelled_items
+from stages import evaluate as evaluate_stage
 
 CLASSES = ("clap", "jump", "walk")
 D = 23  # J = 2
@@ -208,3 +213,12 @@ def test_action_accuracy_scores_any_normalised_batch(setup) -> None:
     assert emb.shape == (4, E) and logits.shape == (4, 3)
     with pytest.raises(ValueError, match="does not know"):
         action_accuracy(recogniser, x, np.array([30] * 4), ["walk", "swim", "clap", "jump"])
+
+
+def test_a_family_whose_training_stage_was_skipped_has_no_rows(tmp_path) -> None:
+    params = yaml.safe_load((REPO_ROOT / "params.yaml").read_text())
+    params["paths"]["artifacts"] = str(tmp_path)
+    (tmp_path / "train_emdm_action").mkdir()
+    (tmp_path / "train_emdm_action" / "skipped.json").write_text(json.dumps({"reason": "no action labels"}))
+    assert evaluate_stage.run("emdm-action", params) == {}
+    assert json.loads((tmp_path / "eval" / "emdm-action" / "metrics.json").read_text()) == {}

@@ -170,6 +170,15 @@ def test_action_stage_reads_the_labelled_classes_of_the_store(params) -> None:
     assert "classes" not in emdm_training.stage_config(params)  # text: no classes
 
 
+def test_only_the_action_stage_is_skipped_without_two_action_labels(params, monkeypatch) -> None:
+    action = copy.deepcopy(params) | {"train_emdm_action": emdm_section(condition="action")}
+    action_stage = emdm_training.training_stage("train_emdm_action", __name__)
+    assert action_stage.skip(action) is None  # the small store has labels
+    monkeypatch.setattr(emdm_training, "missing_actions", lambda p: "no actions.txt")
+    assert action_stage.skip(action) == "no actions.txt"
+    assert emdm_training.training_stage("train_emdm", __name__).skip(params) is None  # text needs no labels
+
+
 def test_action_row_samples_labels_deterministically() -> None:
     torch.manual_seed(0)
     model = EMDMConfig(**emdm_training.model_config(emdm_section(condition="action"), 263, 8, num_actions=3))

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import copy
 import json
+import shutil
 from dataclasses import asdict
 from pathlib import Path
 from typing import Any
@@ -24,17 +25,20 @@ from data.skeleton import HUMANML3D
 from data.store import StoredItem, read_split, write_split
 from models.recogniser import ActionRecogniser, RecogniserConfig
 from pipelines.action_evaluation import load_recogniser, recognise
+from pipelines.checkpoint import skipped
 from pipelines.config import ConfigError
 from pipelines.recogniser import (
     action_classes,
     build,
     labelled_items,
     labelled_set,
+    missing_actions,
     recogniser_config,
     step,
     training_clips,
 )
 from pipelines.runner import LoopSettings, StepContext
+from pipelines.stage import train_unless_skipped
 
 pytestmark = pytest.mark.usefixtures("one_thread")  # tiny networks (tests/conftest.py)
 
@@ -254,3 +258,19 @@ def test_the_stage_trains_the_recogniser_under_ray(store: Path, tmp_path: Path, 
     assert emb.shape == (3, 8) and logits.shape == (3, 3)
     accuracy = float(np.mean(logits.argmax(-1) == val.labels))
     assert accuracy == pytest.approx(metrics["val_accuracy"])
+
+
+def test_a_dataset_without_action_labels_skips_the_recogniser_with_its_reason(store: Path, tmp_path: Path) -> None:
+    from dataclasses import replace
+
+    from stages.train_evaluator import RECOGNISER
+
+    assert missing_actions(params_for(store, tmp_path)) is None
+    unlabelled = tmp_path / "features"
+    shutil.copytree(store, unlabelled)
+    items = [replace(item, action=None) for item in read_split(store / "train.parquet")]
+    write_split(unlabelled / "train.parquet", items, D, 4, 4)
+    params = params_for(unlabelled, tmp_path)
+    assert "0 action label(s)" in missing_actions(params)
+    assert train_unless_skipped(RECOGNISER, params) is None
+    assert "no actions.txt" in skipped(tmp_path / "artifacts" / RECOGNISER.name)

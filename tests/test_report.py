@@ -176,3 +176,18 @@ def test_report_html_renders_in_headless_chromium(artifacts: Path, tmp_path: Pat
     samples = len(SAMPLE_ROWS) * 2
     assert samples * (SAMPLE_SIZE[0] * SAMPLE_SIZE[1] - 16) <= counts.get(SAMPLE_COLOUR, 0) \
         <= samples * SAMPLE_SIZE[0] * SAMPLE_SIZE[1]
+
+
+def test_paraphrase_twins_leave_the_papers_table_for_their_own() -> None:
+    from pipelines import evaluation
+    from pipelines.report import PARAPHRASE, report_sections
+
+    assert PARAPHRASE == evaluation.PARAPHRASE
+    row = {"R_precision_top3": 0.9, "FID": 1.0}
+    table = {"Real": {**row, "action_accuracy": 0.97}, "MLD-DDIM50": {**row, "action_accuracy": 0.8},
+             "MLD-DDIM50@paraphrase": {**row, "action_accuracy": 0.3}, "MLD-DDIM1": row}
+    main, paraphrases = report_sections(table)
+    assert list(main.rows) == ["Real", "MLD-DDIM50", "MLD-DDIM1"]
+    assert list(paraphrases.rows) == ["Real", "MLD-DDIM50", "MLD-DDIM50@paraphrase"]
+    assert "action_accuracy" in [key for key, _, _ in paraphrases.columns]
+    assert len(report_sections({k: v for k, v in table.items() if not k.endswith(PARAPHRASE)})) == 1

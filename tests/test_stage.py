@@ -19,10 +19,10 @@ import torch
 from torch import nn
 from torch.utils.data import TensorDataset
 
-from pipelines.checkpoint import load_final_model
+from pipelines.checkpoint import load_final_model, skipped
 from pipelines.identity import fingerprint, module_files
 from pipelines.runner import Components, LoopSettings, StepContext, TrainSpec, run_training
-from pipelines.stage import TrainingStage, loop_config, train
+from pipelines.stage import TrainingStage, loop_config, train, train_unless_skipped
 
 ray.cloudpickle.register_pickle_by_value(sys.modules[__name__])
 
@@ -172,3 +172,19 @@ def test_stage_config_may_not_repeat_runner_keys() -> None:
     ok = TrainingStage(name="toy", module="pipelines.stage", spec=stage.spec, config=lambda p: {"lr": 1.0},
                        params=("toy",))
     assert loop_config(ok, {"toy": {"loop": LOOP}}) == LOOP | {"lr": 1.0}
+
+
+# --------------------------------------------------------------------------- a stage the data cannot feed
+
+
+def test_a_skipped_stage_writes_only_its_reason_and_trains_nothing(tmp_path: Path) -> None:
+    def no_config(params: dict) -> dict:
+        raise AssertionError("a skipped stage builds no config")
+
+    stage = TrainingStage(name="toy", module="pipelines.stage", spec=TrainSpec(build, dataset, step_v1),
+                          config=no_config, params=("toy", "paths"), skip=lambda params: "no action labels")
+    params = {"toy": {"loop": LOOP}, "paths": {"artifacts": str(tmp_path)}}
+    assert train_unless_skipped(stage, params) is None
+    assert [p.name for p in (tmp_path / "toy").iterdir() if not p.name.startswith(".")] == ["skipped.json"]
+    assert skipped(tmp_path / "toy") == "no action labels" and skipped(tmp_path / "elsewhere") is None
+    assert train_unless_skipped(stage, params) is None  # a second run replaces its own output
