@@ -17,16 +17,31 @@ from data.skeleton import HUMANML3D
 from data.synthetic import (
     SPLITS,
     SyntheticConfig,
+    _choose_kind,
+    _segment,
     dataset_stats,
     generate,
     generate_motion,
     ground_speed,
     mirror_joints,
     mirror_motion,
+    mirror_segment,
 )
 from data.synthetic_library import ACTIONS, LABELS, Segment
 from data.synthetic_motion import initial_state, realize, sample_body
-from data.synthetic_text import LEXICON, mirror_caption
+from data.synthetic_text import (
+    BASE,
+    CLAUSES,
+    GERUND,
+    LEXICON,
+    PAST,
+    THIRD,
+    Subject,
+    describe,
+    fill_template,
+    mirror_caption,
+    past_tense,
+)
 from stages import make_dataset
 
 SMOKE = SyntheticConfig(num_motions=75, previews=1, workers=1)
@@ -195,6 +210,24 @@ def _words(text: str) -> list[str]:
     return re.findall(r"[a-z]+", text.lower())
 
 
+#: Words that state a number of repetitions ("once" and "one" also say other things: "once done", "on one leg").
+_COUNT_WORDS = {"twice": 2, "thrice": 3, "couple": 2, "pair": 2, "two": 2, "three": 3, "four": 4, "five": 5, "six": 6,
+                "seven": 7}
+#: Words of speed that only a slow or only a fast segment may use.
+_SPEED_WORDS = {"slow": {"slowly", "slow", "leisurely"},
+                "fast": {"quickly", "briskly", "fast", "hurriedly", "quick", "brisk", "hastily", "energetically",
+                         "haste", "hurried"}}
+
+
+def _reps(segments: list[Segment]) -> set[int]:
+    """Repetition counts of the segments and of their upper-body actions."""
+    out = set()
+    for s in segments:
+        out |= {s.params["reps"]} if "reps" in s.params else set()
+        out |= set() if s.upper is None else _reps([s.upper])
+    return out
+
+
 def _check_caption(text: str, segments: list[Segment]) -> None:
     words = set(_words(text))
     allowed = set().union(*(_allowed_sides(s) for s in segments))
@@ -203,6 +236,7 @@ def _check_caption(text: str, segments: list[Segment]) -> None:
     assert rotations <= {s.params["direction"] for s in segments if s.kind == "circle"}, text
     if words & {"backward", "backwards"}:
         assert any(s.kind == "walk" and s.params["direction"] == "backward" for s in segments), text
+    assert {_COUNT_WORDS[w] for w in words if w in _COUNT_WORDS} <= _reps(segments), text
 
 
 def test_captions_state_sides_and_directions_consistently(motions):
@@ -240,6 +274,105 @@ def test_captions_have_hml3d_tokens(motions):
                 spans += 1
                 assert 0 <= c.start < c.end <= (len(m.joints) - 1) / 20 and (c.end - c.start) * 20 >= 40
     assert spans > 0
+
+
+def _filled(segment: Segment) -> list[str]:
+    """Every clause template of the segment, filled for a subject, in every verb form."""
+    subject = Subject("a person", "his", "himself")
+    return [" ".join(w for w, _ in fill_template(t, subject, form)) for t in CLAUSES[segment.kind](segment.params)
+            for form in (THIRD, GERUND, BASE, PAST)]
+
+
+@pytest.mark.parametrize("kind", sorted(ACTIONS))
+def test_every_clause_template_states_the_segments_count_side_direction_and_pace(kind):
+    """Each wording of each sampled segment (and of its mirror): sides, turning directions and counts are
+    exactly the segment's (one repetition: "once" or nothing), adverbs of speed agree with its pace and
+    a sided single action always names its side."""
+    rng = np.random.default_rng(3)
+    for _ in range(40):
+        original = Segment(kind, ACTIONS[kind].sample(rng))
+        for segment in (original, mirror_segment(original)):
+            p = segment.params
+            for text in _filled(segment):
+                words = set(_words(text))
+                _check_caption(text, [segment])
+                if p.get("reps", 1) == 1:
+                    assert not words & set(_COUNT_WORDS), text
+                if "once" in words and kind != "turn":  # a turn may spin around once
+                    assert p["reps"] == 1, text
+                pace = p.get("pace")
+                if pace is not None:
+                    assert not words & set().union(*(w for k, w in _SPEED_WORDS.items() if k != pace)), text
+                if kind in ("kick", "punch", "wave", "hop", "throw") and p["side"] in _SIDES:
+                    assert p["side"] in words, text
+    assert len(CLAUSES[kind](ACTIONS[kind].sample(rng))) >= 5  # many ways to say each action
+
+
+def _programs(n: int) -> list[tuple[list[Segment], list[str]]]:
+    """(segments, starting postures) of ``n`` action programs drawn as data/synthetic.py draws them
+    (postures chained, upper-body actions on carriers), without building their motions."""
+    config = SyntheticConfig()
+    out = []
+    for i in range(n):
+        rng = np.random.default_rng([0, i])
+        posture = "sit" if rng.random() < config.seated_start else "stand"
+        target = 1 + int(rng.choice(len(config.actions_per_motion), p=np.asarray(config.actions_per_motion)))
+        segments: list[Segment] = []
+        postures: list[str] = []
+        for _ in range(target):
+            kind = _choose_kind(rng, posture, segments[-1].kind if segments else None)
+            segments.append(_segment(rng, kind, config.mix_prob, {s.kind for s in segments}))
+            postures.append(posture)
+            posture = {"sit_down": "sit", "stand_up": "stand"}.get(kind, posture)
+        out.append((segments, postures))
+    return out
+
+
+@pytest.fixture(scope="module")
+def caption_sample():
+    """(captions, segments) of 400 programs' captions and their mirrors: 3-5 whole-clip captions each and
+    span captions of 3-second segments (the first 400 of :func:`_programs`)."""
+    out = []
+    for i, (segments, postures) in enumerate(_programs(400)):
+        windows = [(10 + 60 * k, 70 + 60 * k) for k in range(len(segments))]
+        count = int(np.random.default_rng([0, i]).integers(3, 6))
+        captions = describe(segments, windows, postures, 80 + 60 * len(segments), np.random.default_rng([1, i]),
+                            count, 0.3)
+        for caps, segs in ((captions, segments), ([mirror_caption(c) for c in captions],
+                                                  [mirror_segment(s) for s in segments])):
+            for c in caps:
+                out.append((c, segs if c.is_whole_clip else [segs[(round(c.start * 20) - 10) // 60]]))
+    return out
+
+
+#: Distinct words and distinct (word, POS) tokens of the caption sample as the grammar wrote it before it was
+#: widened (commit f461315).
+_NARROW_WORDS, _NARROW_TOKENS = 269, 206
+
+
+def test_the_caption_vocabulary_is_wide_and_in_the_lexicon(caption_sample):
+    words = {w for c, _ in caption_sample for w in _words(c.text)}
+    assert len(words) >= 2.5 * _NARROW_WORDS
+    assert len({token for c, _ in caption_sample for token in c.tokens}) >= 2 * _NARROW_TOKENS
+    assert words <= set(LEXICON)  # inflected verbs too: the held-out checks see every written word
+
+
+def test_sample_captions_state_counts_sides_and_directions(caption_sample):
+    for c, segments in caption_sample:
+        _check_caption(c.text, segments)
+    texts = [c.text for c, _ in caption_sample]
+    for phrase in ("twice", "three times", "in a row", "forwards", "after that", "is seen", "a boy", "walked"):
+        assert any(phrase in t for t in texts), phrase
+
+
+def test_past_tense_and_verb_forms():
+    assert [past_tense(v) for v in ("walk", "step", "hurry", "stay", "wave", "run", "propel", "jog")] == [
+        "walked", "stepped", "hurried", "stayed", "waved", "ran", "propelled", "jogged"]
+    subject = Subject("a boy", "his", "himself")
+    assert [" ".join(w for w, _ in fill_template("~hop on {poss} left foot", subject, form))
+            for form in (THIRD, GERUND, BASE, PAST)] == [
+        "hops on his left foot", "hopping on his left foot", "hop on his left foot", "hopped on his left foot"]
+    assert "bent" not in LEXICON  # a held-out paraphrase word: "bend" is never said in the past tense
 
 
 def test_verbs_and_nouns_are_lemmatised():
