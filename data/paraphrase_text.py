@@ -32,7 +32,6 @@ import numpy as np
 
 from data.humanml3d import Caption
 from data.synthetic_library import Segment
-from data.synthetic_motion import FPS
 from data.synthetic_text import (
     GERUND,
     THIRD,
@@ -40,9 +39,11 @@ from data.synthetic_text import (
     Word,
     build_lexicon,
     caption_text,
+    distinct_captions,
     fill_template,
     fix_articles,
     plain_words,
+    span_seconds,
     tokens_of,
 )
 
@@ -394,24 +395,12 @@ def paraphrases(segments: Sequence[Segment], windows: Sequence[tuple[int, int]],
     segment's window in seconds); each gets paraphrases of its segment with the same span, so they
     belong to the same dataset item.
     """
-    out = _distinct(lambda: paraphrase(segments, rng, seated=postures[0] == "sit"), count)
-    bounds = {(round(a / FPS, 2), round(min(b, length - 1) / FPS, 2)): k for k, (a, b) in enumerate(windows)}
+    out = distinct_captions(lambda: paraphrase(segments, rng, seated=postures[0] == "sit"), count)
+    bounds = {span_seconds(window, length): k for k, window in enumerate(windows)}
     for span in spans:
         k = bounds.get((span.start, span.end))
         if k is None:
             raise ValueError(f"span {span.start}-{span.end} s of {span.text!r} is no segment's window")
-        out += _distinct(lambda k=k, span=span: paraphrase([segments[k]], rng, span.start, span.end,
+        out += distinct_captions(lambda k=k, span=span: paraphrase([segments[k]], rng, span.start, span.end,
                                                            postures[k] == "sit"), count)
-    return out
-
-
-def _distinct(make: Callable[[], Caption], count: int) -> list[Caption]:
-    """Up to ``count`` captions of ``make`` with distinct texts (20 * count tries)."""
-    out: list[Caption] = []
-    for _ in range(20 * count):
-        candidate = make()
-        if candidate.text not in {c.text for c in out}:
-            out.append(candidate)
-        if len(out) == count:
-            break
     return out

@@ -28,7 +28,7 @@ its mirrored clips.
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -949,19 +949,31 @@ def describe(segments: Sequence[Segment], windows: Sequence[tuple[int, int]], po
     ``span_prob``, a caption of its own covering its frames (in seconds; the span ends before the
     last frame so it stays inside the motion's ``length - 1`` feature frames).
     """
-    captions: list[Caption] = []
-    for _ in range(20 * count):
-        candidate = caption(segments, rng, seated=postures[0] == "sit")
-        if candidate.text not in {c.text for c in captions}:
-            captions.append(candidate)
-        if len(captions) == count:
-            break
+    captions = distinct_captions(lambda: caption(segments, rng, seated=postures[0] == "sit"), count)
     if len(segments) > 1:
-        for segment, (a, b), posture in zip(segments, windows, postures, strict=True):
-            b = min(b, length - 1)
-            if b - a >= min_span and rng.random() < span_prob:
-                captions.append(caption([segment], rng, round(a / FPS, 2), round(b / FPS, 2), posture == "sit"))
+        for segment, window, posture in zip(segments, windows, postures, strict=True):
+            if min(window[1], length - 1) - window[0] >= min_span and rng.random() < span_prob:
+                captions.append(caption([segment], rng, *span_seconds(window, length), posture == "sit"))
     return captions
+
+
+def distinct_captions(make: Callable[[], Caption], count: int) -> list[Caption]:
+    """Up to ``count`` captions of ``make`` with distinct texts (at most 20 * count tries)."""
+    out: list[Caption] = []
+    for _ in range(20 * count):
+        candidate = make()
+        if candidate.text not in {c.text for c in out}:
+            out.append(candidate)
+        if len(out) == count:
+            break
+    return out
+
+
+def span_seconds(window: tuple[int, int], length: int) -> tuple[float, float]:
+    """A segment's window [start, end) in frames as its span caption states it, in seconds: it ends
+    before the motion's last frame, inside its ``length - 1`` feature frames."""
+    start, end = window
+    return round(start / FPS, 2), round(min(end, length - 1) / FPS, 2)
 
 
 _MIRROR_WORDS = {"left": "right", "right": "left", "clockwise": "counterclockwise",

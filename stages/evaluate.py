@@ -115,7 +115,10 @@ def run(name: str, params: dict[str, Any]) -> dict[str, dict[str, float]]:
         return {}
     rows = [] if name == REAL else family(name).build_rows(ctx)
     actions = [row for row in rows if isinstance(row, ActionGenerator)]
-    recogniser = None if skipped(artifacts / RECOGNISER) else load_recogniser(ctx.trained(RECOGNISER))
+    headline = any(row.name in cfg.paraphrase_rows for row in rows)
+    recognised = bool(actions) or name == REAL or headline  # the rows the action recogniser scores
+    recogniser = (load_recogniser(ctx.trained(RECOGNISER)) if recognised and not skipped(artifacts / RECOGNISER)
+                  else None)
     if actions:  # the action-to-motion protocol: the recogniser, not the T2M evaluator
         table = evaluate_action_rows(actions, ctx.store, recogniser, cfg.replications,
                                      cfg.seed, diversity_times=cfg.diversity_times, mm_times=cfg.mm_times,
@@ -126,9 +129,10 @@ def run(name: str, params: dict[str, Any]) -> dict[str, dict[str, float]]:
     test = ctx.store.split("test")
     embedder = load_evaluator(ctx.trained("train_evaluator"))
     skeleton = get_skeleton(params["data"]["skeleton"])
-    headline = any(row.name in cfg.paraphrase_rows for row in rows)
-    sem = semantics(repo_path(params, "data.root"), test, ctx.store, recogniser, cfg.seed, skeleton.fps,
-                    paraphrases=headline)
+    sem = None
+    if name == REAL or headline:
+        sem = semantics(repo_path(params, "data.root"), test, ctx.store, recogniser, cfg.seed, skeleton.fps,
+                        paraphrases=headline)
     if headline and sem.paraphrase is None:
         print(f"eval_{name}: {params['data']['root']} has no {PARAPHRASES_DIR}/: no paraphrase rows")
     if name == REAL:

@@ -4,6 +4,8 @@ The evaluation world is test_evaluation's: each item's caption and motion carry 
 evaluator embeds both as that code, and Retrieval answers a caption with its item's identical twin.
 """
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 from test_evaluation import CFG, StubEmbedder, world  # noqa: F401  (the fixture)
@@ -16,7 +18,7 @@ from pipelines.evaluation import PARAPHRASE, Draw, Semantics, evaluate, referenc
 from pipelines.paraphrase import paraphrase_sampler, read_paraphrases
 
 D = HUMANML3D.feature_dim
-ROWS_CFG = CFG.__class__(**{**CFG.__dict__, "paraphrase_rows": ("Retrieval",)})
+ROWS_CFG = replace(CFG, paraphrase_rows=("Retrieval",))
 
 
 def _evaluate(world, semantics):  # noqa: F811
