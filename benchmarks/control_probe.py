@@ -6,9 +6,11 @@ Trains in-process into ``/tmp/probe/cn_<name>`` on top of the student, teacher, 
 under ``$ARTIFACTS`` (symlinked); with the name ``existing`` it skips training and probes
 ``$ARTIFACTS/train_controlnet``. Then, on the first ``$ITEMS`` test motions (first caption, full
 length, seed 0, ``sample.motionlcm_guidance``), pelvis hints at ``$DENSITY``: the control errors
-of MotionLCM-1 without control, of the ControlNet, and of the refinement at several (steps, lr,
-realism) settings, plus batch-1 seconds per motion of the ControlNet with 0/10/20/30 refinement
-steps. Prints one JSON line per measurement. Used for docs/controlnet.md.
+of MotionLCM-1 without control, of the ControlNet, and of the noise refinement at several (steps,
+lr) settings, plus batch-1 seconds per motion of the ControlNet with 0/10/20/30 refinement
+steps (``REFINE=0`` skips the refinement rows and timings). Each row also gets the T2M evaluator's
+FID against the same items' real motions, R@3 (groups of 32) and Diversity (``ITEMS=all`` for the
+whole test split). Prints one JSON line per measurement. Used for docs/controlnet.md.
 """
 import json
 import os
@@ -23,17 +25,18 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from data.control import evaluation_mask  # noqa: E402
 from data.features import recover_from_ric  # noqa: E402
 from data.motion_dataset import pad_tokens  # noqa: E402
-from models.controlnet import ControlledStudent, refine_latents  # noqa: E402
-from models.metrics import control_errors  # noqa: E402
+from models import metrics as M  # noqa: E402
+from models.controlnet import ControlledStudent, refine_noise  # noqa: E402
 from models.motionlcm import motionlcm_latents  # noqa: E402
 from pipelines.config import load_params  # noqa: E402
 from pipelines.controlnet_family import load_controlnet  # noqa: E402
+from pipelines.evaluation import load_evaluator  # noqa: E402
 from pipelines.feature_store import FeatureStore  # noqa: E402
 from pipelines.mld_family import load_mld, load_motionlcm, load_vae  # noqa: E402
 from pipelines.stage import train  # noqa: E402
 from stages import train_controlnet  # noqa: E402
 
-REFINE = [(10, 0.1, 0.01), (20, 0.1, 0.01), (30, 0.1, 0.01), (20, 0.2, 0.01), (20, 0.1, 0.0), (20, 0.1, 0.1)]
+REFINE = [(5, 0.1), (10, 0.1), (20, 0.1), (30, 0.1), (10, 0.05), (10, 0.3)]
 
 torch.set_num_threads(2)
 name, overrides = sys.argv[1], sys.argv[2:]
@@ -54,7 +57,8 @@ store = FeatureStore(source / "features")
 vae, (_, schedule, _) = load_vae(source / "train_vae"), load_mld(source / "train_mld")
 student = load_motionlcm(source / "distill_lcm")
 controlnet = load_controlnet(art / "train_controlnet", student)
-items = store.split("test")[: int(os.environ.get("ITEMS", "128"))]
+count = os.environ.get("ITEMS", "128")
+items = store.split("test")[: None if count == "all" else int(count)]
 lengths = torch.tensor([item.length for item in items])
 raw = np.zeros((len(items), int(lengths.max()), store.feature_dim), np.float32)
 for k, item in enumerate(items):
@@ -68,32 +72,48 @@ tokens, token_mask = pad_tokens([np.asarray(item.text_tokens[0], np.float32) for
 w = params["sample"]["motionlcm_guidance"] - 1.0
 mean, std = torch.from_numpy(store.mean), torch.from_numpy(store.std)
 scale = student.config.latent_scale
+embedder = load_evaluator(source / "train_evaluator")
+valid = np.arange(raw.shape[1])[None, :] < lengths.numpy()[:, None]
+text_emb = embedder.texts([item.tokens[0] for item in items])
+real_stats = M.gaussian_statistics(embedder.motions(raw, lengths.numpy()))
 
 
-def latents(model: torch.nn.Module, index: slice = slice(None)) -> torch.Tensor:
-    return motionlcm_latents(model, schedule, text[index], 1, w, torch.Generator().manual_seed(0),
-                             text_tokens=tokens[index], text_mask=token_mask[index])
+def noise(index: slice = slice(None)) -> torch.Tensor:
+    """The initial noise of the first ``len(items)`` samples drawn at once with seed 0, rows ``index``."""
+    shape = (len(items), student.config.latent_tokens, student.config.latent_dim)
+    return torch.randn(shape, generator=torch.Generator().manual_seed(0))[index]
+
+
+def latents(model: torch.nn.Module, index: slice = slice(None), x_T: torch.Tensor | None = None) -> torch.Tensor:
+    return motionlcm_latents(model, schedule, text[index], 1, w, text_tokens=tokens[index],
+                             text_mask=token_mask[index], x_T=noise(index) if x_T is None else x_T)
 
 
 def errors(z: torch.Tensor) -> dict[str, float]:
     with torch.no_grad():
         features = vae.decode_by_length(z * scale, lengths).numpy()
-    joints = recover_from_ric(features * store.std + store.mean, store.joints_num)
-    return {k: round(v, 3) for k, v in control_errors(joints, target, mask).items()}
+    generated = np.where(valid[..., None], features * store.std + store.mean, 0.0).astype(np.float32)
+    joints = recover_from_ric(generated, store.joints_num)
+    motion_emb = embedder.motions(generated, lengths.numpy())
+    quality = {"FID": M.frechet_distance(*M.gaussian_statistics(motion_emb), *real_stats),
+               "R@3": float(M.r_precision(text_emb, motion_emb, 32, top_k=3)[2]),
+               "Diversity": M.diversity(motion_emb, 300, np.random.default_rng(0))}
+    return {k: round(v, 3) for k, v in (M.control_errors(joints, target, mask) | quality).items()}
 
 
-def refine(z: torch.Tensor, steps: int, lr: float, realism: float, index: slice = slice(None)) -> torch.Tensor:
-    return refine_latents(vae, z, hint[index], hint_mask[index], lengths[index], mean=mean, std=std,
-                          latent_scale=scale, steps=steps, lr=lr, realism_weight=realism)
+def refine(model: torch.nn.Module, steps: int, lr: float, index: slice = slice(None)) -> torch.Tensor:
+    return refine_noise(lambda x: latents(model, index, x), vae, noise(index), model.hint, model.mask,
+                        lengths[index], mean=mean, std=std, latent_scale=scale, steps=steps, lr=lr)
 
 
 print(json.dumps({"name": name, "row": "uncontrolled", **errors(latents(student))}))
 controlled = ControlledStudent(student, controlnet, hint, hint_mask)
 z0 = latents(controlled)
 print(json.dumps({"name": name, "row": "controlnet", **errors(z0)}))
-for steps, lr, realism in REFINE:
-    print(json.dumps({"name": name, "row": f"refine steps={steps} lr={lr} realism={realism}",
-                      **errors(refine(z0, steps, lr, realism))}))
+if os.environ.get("REFINE", "1") == "0":
+    sys.exit(0)
+for steps, lr in REFINE:
+    print(json.dumps({"name": name, "row": f"refine steps={steps} lr={lr}", **errors(refine(controlled, steps, lr))}))
 
 first = int(lengths[0])
 single = ControlledStudent(student, controlnet, hint[:1, :first], hint_mask[:1, :first])
@@ -101,10 +121,7 @@ for steps in (0, 10, 20, 30):
     seconds = []
     for _ in range(6):  # the first is a warm-up
         start = time.perf_counter()
-        z = latents(single, slice(0, 1))
-        if steps:
-            z = refine_latents(vae, z, hint[:1, :first], hint_mask[:1, :first], lengths[:1], mean=mean, std=std,
-                               latent_scale=scale, steps=steps, lr=0.1, realism_weight=0.01)
+        z = refine(single, steps, 0.1, slice(0, 1))
         with torch.no_grad():
             vae.decode_by_length(z * scale, lengths[:1])
         seconds.append(time.perf_counter() - start)

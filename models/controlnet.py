@@ -32,7 +32,7 @@ issue's masked L2) rather than the reference's smooth-L1, which equals half of i
 from __future__ import annotations
 
 import copy
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, field
 from typing import Any
 
@@ -206,9 +206,10 @@ def controlnet_loss(
     return {"total": latent + control_weight * control, "latent": latent.detach(), "control": control.detach()}
 
 
-def refine_latents(
+def refine_noise(
+    denoise: Callable[[Tensor], Tensor],
     vae: MotionVAE,
-    z0: Tensor,
+    x_T: Tensor,
     hint: Tensor,
     mask: Tensor,
     lengths: Tensor,
@@ -218,25 +219,30 @@ def refine_latents(
     latent_scale: float,
     steps: int = 10,
     lr: float = 0.1,
-    realism_weight: float = 0.01,
 ) -> Tensor:
-    """Test-time refinement: a few Adam steps on the sampled latent toward the hint (our addition).
+    """Test-time refinement by noise optimisation (our addition; MotionLCM V2 and DNO optimise the noise).
 
-    Minimises ``L_control(decode(z)) + realism_weight · mean((z - z0)²)`` over z from z0 (B, L, C),
-    gradients through the frozen decoder and the joint recovery. The realism term keeps z near the
-    model's own sample, so the motion stays one the decoder produces for text-conditioned latents,
-    rather than any latent that happens to pass the keyframes. Controlled entries on frames at or past
-    ``lengths`` are ignored. Gradients are taken for z only (never the decoder's weights). Returns the
-    refined z (no grad).
+    ``denoise`` maps initial noise x (B, L, C) to the one-step sample z0 (B, L, C): the controlled
+    student's consistency output. Adam on x from ``x_T`` minimises ``L_control(decode(denoise(x)))``;
+    after each step every sample's x is rescaled to the norm of its ``x_T`` (DNO's hypersphere
+    constraint: Gaussian draws of this dimension concentrate on that sphere). The sample therefore
+    stays one the model produces for some noise, rather than any latent that happens to pass the
+    keyframes, which is what keeps the motion natural: there is no realism weight to tune.
+    Controlled entries on frames at or past ``lengths`` are ignored. Gradients are taken for x only
+    (never a network's weights). Returns ``denoise(x)`` of the final x (no grad); ``steps=0`` returns
+    ``denoise(x_T)``.
     """
     frames = hint.shape[1]
     mask = mask & lengths_to_mask(lengths, frames).to(mask.device)[..., None]
-    z = z0.detach().clone().requires_grad_(True)
-    opt = torch.optim.Adam([z], lr=lr)
+    radius = x_T.flatten(1).norm(dim=1).view(-1, *[1] * (x_T.dim() - 1))
+    x = x_T.detach().clone().requires_grad_(True)
+    opt = torch.optim.Adam([x], lr=lr)
     with torch.enable_grad():
         for _ in range(steps):
-            joints = decode_joints(vae, z, lengths, frames, mean, std, latent_scale)
-            loss = control_loss(joints, hint, mask) + realism_weight * ((z - z0) ** 2).mean()
-            (z.grad,) = torch.autograd.grad(loss, [z])
+            joints = decode_joints(vae, denoise(x), lengths, frames, mean, std, latent_scale)
+            (x.grad,) = torch.autograd.grad(control_loss(joints, hint, mask), [x])
             opt.step()
-    return z.detach()
+            with torch.no_grad():
+                x.mul_(radius / x.flatten(1).norm(dim=1).view_as(radius))
+    with torch.no_grad():
+        return denoise(x.detach())

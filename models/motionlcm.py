@@ -124,7 +124,6 @@ def lcm_distillation_loss(
     return {"total": distance(f_student, f_target, kind, huber_c), "w": w.mean()}
 
 
-@torch.no_grad()
 def motionlcm_latents(
     student: MLDDenoiser,
     schedule: NoiseSchedule,
@@ -136,8 +135,14 @@ def motionlcm_latents(
     timesteps: Sequence[int] | None = None,
     text_tokens: Tensor | None = None,
     text_mask: Tensor | None = None,
+    x_T: Tensor | None = None,
 ) -> Tensor:
-    """MotionLCM's diffusion-space latents z0 (B, L, C) for text_emb (B, E); see :func:`sample_motionlcm`."""
+    """MotionLCM's diffusion-space latents z0 (B, L, C) for text_emb (B, E); see :func:`sample_motionlcm`.
+
+    ``x_T`` (B, L, C): the initial noise, instead of a draw from ``generator``. Gradients are off,
+    except toward an ``x_T`` that requires grad (test-time noise optimisation differentiates through
+    this function; the networks' weights are then still never trained by it).
+    """
     cfg = student.config
     if timesteps is None:
         if num_steps not in TIMESTEPS:
@@ -151,8 +156,8 @@ def motionlcm_latents(
         if text_tokens is None or text_mask is None:
             raise ValueError(f"this student has word_tokens={cfg.word_tokens!r}: pass text_tokens and text_mask")
         cond |= {"text_tokens": text_tokens, "text_mask": text_mask.bool()}
-    with eval_mode(student):
-        return lcm_multistep_sample(student, shape, schedule, generator=generator, cond=cond,
+    with eval_mode(student), torch.set_grad_enabled(x_T is not None and x_T.requires_grad):
+        return lcm_multistep_sample(student, shape, schedule, generator=generator, cond=cond, x_T=x_T,
                                     timesteps=timesteps, prediction_type=cfg.prediction_type, device=text_emb.device)
 
 

@@ -4,8 +4,8 @@ Rows (all one-step MotionLCM, the configured guidance, pelvis hints from the tes
 
 - ``MotionLCM-Control``: every frame controlled (100 %);
 - ``MotionLCM-Control-5f``: 5 random frames;
-- ``MotionLCM-Control+refine``: 100 %, then test-time refinement of the latent
-  (:func:`models.controlnet.refine_latents`, ``sample.control_refine_*``);
+- ``MotionLCM-Control+refine``: 100 %, with test-time noise optimisation
+  (:func:`models.controlnet.refine_noise`, ``sample.control_refine_*``);
 - ``MotionLCM-1-uncontrolled``: MotionLCM-1 without a ControlNet, scored against the same 100 % hints
   (the control error of a model that ignores them).
 """
@@ -18,7 +18,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 import torch
 
-from models.controlnet import ControlConfig, ControlledStudent, MotionControlNet, refine_latents
+from models.controlnet import ControlConfig, ControlledStudent, MotionControlNet, refine_noise
 from models.diffusion import NoiseSchedule
 from models.generator import ControlSpec, Hint, TextBatch
 from models.mld import MLDDenoiser
@@ -63,15 +63,21 @@ class ControlNetGenerator:
         joints = torch.from_numpy(hint.joints[:, :frames].astype(np.float32))
         mask = torch.from_numpy(hint.mask[:, :frames]) & lengths_to_mask(lengths_t, frames)[..., None]
         model = ControlledStudent(self.student, self.controlnet, joints, mask)
-        z0 = motionlcm_latents(model, self.schedule, torch.from_numpy(text.pooled.astype(np.float32)), 1, self.w,
-                               torch.Generator().manual_seed(seed), **word_tokens(self.student, text))
-        scale = self.student.config.latent_scale
-        if self.refine is not None:
-            z0 = refine_latents(self.vae, z0, joints, mask, lengths_t, mean=self.mean, std=self.std,
-                                latent_scale=scale, steps=int(self.refine["steps"]), lr=self.refine["lr"],
-                                realism_weight=self.refine["realism_weight"])
+        text_emb, words = torch.from_numpy(text.pooled.astype(np.float32)), word_tokens(self.student, text)
+        cfg = self.student.config
+        x_T = torch.randn((len(text), cfg.latent_tokens, cfg.latent_dim), generator=torch.Generator().manual_seed(seed))
+
+        def denoise(x: torch.Tensor) -> torch.Tensor:
+            return motionlcm_latents(model, self.schedule, text_emb, 1, self.w, x_T=x, **words)
+
+        if self.refine is None:
+            with torch.no_grad():
+                z0 = denoise(x_T)
+        else:
+            z0 = refine_noise(denoise, self.vae, x_T, joints, mask, lengths_t, mean=self.mean, std=self.std,
+                              latent_scale=cfg.latent_scale, steps=int(self.refine["steps"]), lr=self.refine["lr"])
         with torch.no_grad():
-            return self.vae.eval().decode_by_length(z0 * scale, lengths_t).numpy()
+            return self.vae.eval().decode_by_length(z0 * cfg.latent_scale, lengths_t).numpy()
 
 
 class Uncontrolled:
@@ -87,8 +93,7 @@ class Uncontrolled:
 
 def _refine_settings(ctx: EvalContext) -> dict[str, float]:
     sample = ctx.params["sample"]
-    return {"steps": sample["control_refine_steps"], "lr": sample["control_refine_lr"],
-            "realism_weight": sample["control_refine_realism"]}
+    return {"steps": sample["control_refine_steps"], "lr": sample["control_refine_lr"]}
 
 
 def _controlnet(ctx: EvalContext, name: str, density: str, refine: bool = False,

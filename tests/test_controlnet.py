@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 import torch
 from tolerance import float32_atol
+from torch import nn
 
 from data.control import evaluation_mask, joint_ids, keyframe_count, training_mask
 from data.features import recover_from_ric
@@ -16,7 +17,7 @@ from models.controlnet import (
     control_loss,
     controlnet_loss,
     decode_joints,
-    refine_latents,
+    refine_noise,
 )
 from models.diffusion import NoiseSchedule
 from models.generator import Hint
@@ -198,29 +199,35 @@ def test_decode_joints_matches_the_numpy_recovery():
     assert np.allclose(joints.detach().numpy(), recover_from_ric(features.astype(np.float64), J), atol=1e-4)
 
 
-def test_refinement_pulls_the_decoded_joints_to_the_hint():
+def test_noise_refinement_pulls_the_decoded_joints_to_the_hint_and_keeps_the_noise_norm():
     vae = tiny_vae()  # trainable weights: the refinement must still leave them without gradients
     lengths = torch.tensor([12, 12])
     mean, std = torch.zeros(D), torch.full((D,), 0.1)
     target = decode_joints(vae, torch.randn(2, 2, 8), lengths, 12, mean, std, 1.0).detach()
     mask = torch.zeros(2, 12, J, dtype=torch.bool)
     mask[:, :, 0] = True
-    z0 = torch.randn(2, 2, 8)
-    before = control_loss(decode_joints(vae, z0, lengths, 12, mean, std, 1.0), target, mask)
-    z = refine_latents(vae, z0, target, mask, lengths, mean=mean, std=std, latent_scale=1.0, steps=30, lr=0.1,
-                       realism_weight=0.0)
+    mixer = nn.Linear(8, 8)  # a trainable stand-in for the one-step sampler
+    x_T = torch.randn(2, 2, 8, generator=torch.Generator().manual_seed(1))
+
+    def refine(denoise, hint_mask=mask, lens=lengths, steps=30):
+        return refine_noise(denoise, vae, x_T, target, hint_mask, lens, mean=mean, std=std, latent_scale=1.0,
+                            steps=steps, lr=0.1)
+
+    before = control_loss(decode_joints(vae, mixer(x_T), lengths, 12, mean, std, 1.0), target, mask)
+    z = refine(mixer)
     after = control_loss(decode_joints(vae, z, lengths, 12, mean, std, 1.0), target, mask)
     assert after < 0.5 * before
-    assert all(p.grad is None for p in vae.parameters())
+    assert all(p.grad is None for p in [*vae.parameters(), *mixer.parameters()])
+    assert torch.equal(refine(mixer, steps=0), mixer(x_T).detach())
+    # with the identity as sampler the result is the optimised noise itself: on the sphere of x_T's norm
+    moved = refine(lambda x: x)
+    assert not torch.allclose(moved, x_T)
+    assert torch.allclose(moved.flatten(1).norm(dim=1), x_T.flatten(1).norm(dim=1), atol=1e-5)
     padded = mask.clone()
     padded[:, 10:] = True  # controlled entries past the lengths below are ignored
     short = torch.tensor([10, 10])
-    assert torch.equal(refine_latents(vae, z0, target, padded, short, mean=mean, std=std, latent_scale=1.0, steps=3),
-                       refine_latents(vae, z0, target, mask & (torch.arange(12) < 10)[None, :, None], short,
-                                      mean=mean, std=std, latent_scale=1.0, steps=3))
-    tied = refine_latents(vae, z0, target, mask, lengths, mean=mean, std=std, latent_scale=1.0, steps=30, lr=0.1,
-                          realism_weight=1e6)
-    assert (tied - z0).abs().max() < (z - z0).abs().max()  # the realism term holds the latent near the sample
+    assert torch.equal(refine(mixer, padded, short, 3), refine(mixer, mask & (torch.arange(12) < 10)[None, :, None],
+                                                            short, 3))
 
 
 def test_controlled_sampling_reduces_to_motionlcm_at_initialisation():
@@ -231,6 +238,8 @@ def test_controlled_sampling_reduces_to_motionlcm_at_initialisation():
     plain = motionlcm_latents(base, SCHEDULE, x["text_emb"], 1, 1.5, torch.Generator().manual_seed(5), **kwargs)
     same = motionlcm_latents(controlled, SCHEDULE, x["text_emb"], 1, 1.5, torch.Generator().manual_seed(5), **kwargs)
     assert torch.equal(plain, same)
+    x_T = torch.randn(plain.shape, generator=torch.Generator().manual_seed(5))  # the draw the generator makes
+    assert torch.equal(motionlcm_latents(controlled, SCHEDULE, x["text_emb"], 1, 1.5, x_T=x_T, **kwargs), plain)
 
 
 def test_hint_validation():
