@@ -70,12 +70,9 @@ class ControlNetGenerator:
         def denoise(x: torch.Tensor) -> torch.Tensor:
             return motionlcm_latents(model, self.schedule, text_emb, 1, self.w, x_T=x, **words)
 
-        if self.refine is None:
-            with torch.no_grad():
-                z0 = denoise(x_T)
-        else:
-            z0 = refine_noise(denoise, self.vae, x_T, joints, mask, lengths_t, mean=self.mean, std=self.std,
-                              latent_scale=cfg.latent_scale, steps=int(self.refine["steps"]), lr=self.refine["lr"])
+        z0 = denoise(x_T) if self.refine is None else refine_noise(
+            denoise, self.vae, x_T, joints, mask, lengths_t, mean=self.mean, std=self.std,
+            latent_scale=cfg.latent_scale, steps=int(self.refine["steps"]), lr=self.refine["lr"])
         with torch.no_grad():
             return self.vae.eval().decode_by_length(z0 * cfg.latent_scale, lengths_t).numpy()
 
