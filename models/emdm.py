@@ -533,12 +533,15 @@ class EMDMGenerator(nn.Module):
         filter over frames (``skip_kernel`` > 1), reading padded frames and the ends as 0."""
         if self.skip is None:
             raise RuntimeError("this generator has no input skip (input_skip: false)")
+        # index_select, not skip[steps]: the backward of advanced indexing (index_put_ with
+        # accumulate) sums repeated steps in an order that varies between runs on more than one CPU thread.
+        taps = self.skip.index_select(0, steps)
         if self.skip.ndim == 1:
-            return self.skip[steps][:, None, None] * x_next
+            return taps[:, None, None] * x_next
         k = self.skip.shape[-1]
         x = torch.where(valid[..., None], x_next, 0.0)
         windows = F.pad(x, (0, 0, k // 2, k // 2)).unfold(1, k, 1)  # (B, N, D, k)
-        return torch.einsum("bndk,bdk->bnd", windows, self.skip[steps].to(x.dtype))
+        return torch.einsum("bndk,bdk->bnd", windows, taps.to(x.dtype))
 
 
 class EMDMDiscriminator(nn.Module):

@@ -352,6 +352,29 @@ def test_skip_kernel_starts_as_the_scalar_skip_and_filters_valid_neighbours_only
         _nets(skip_kernel=2)
 
 
+def test_skip_filter_gradient_is_bit_identical_run_to_run() -> None:
+    """Repeated steps in a batch: the skip taps' gradient must not depend on summation order (the
+    backward of ``skip[steps]`` made EMDM's training differ run to run on two threads; ``index_select``'s
+    does not)."""
+    gen, _ = _nets(input_skip=True, skip_kernel=5)
+    g = _gen(3)
+    x, w = torch.randn(32, 196, D, generator=g), torch.randn(32, 196, D, generator=g)
+    steps, valid = torch.randint(0, 10, (32,), generator=g), torch.ones(32, 196, dtype=torch.bool)
+
+    def grad() -> torch.Tensor:
+        gen.skip.grad = None
+        (gen.skipped(x, steps, valid) * w).sum().backward()
+        return gen.skip.grad.clone()
+
+    threads = torch.get_num_threads()
+    torch.set_num_threads(2)  # the order varied with more than one intra-op thread
+    try:
+        first = grad()
+        assert all(torch.equal(grad(), first) for _ in range(4))
+    finally:
+        torch.set_num_threads(threads)
+
+
 def test_naive_ddgan_discriminator_ignores_the_condition() -> None:
     _, disc = _nets(d_condition=False)
     g = _gen(7)
