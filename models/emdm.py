@@ -93,6 +93,16 @@ Choices where the paper (or its code) is ambiguous or where we depart from it, e
    centre). The scalar passes s_t times the noise of x_{t+1} into x0_hat, frame by frame: jitter in
    every sample, whose last step returns the level-1 estimate. Motion is smooth over neighbouring
    frames, so the window's estimate is a temporal low-pass that leaves most of that noise out.
+11. Word tokens (``word_tokens``, ours; the paper: False): every layer of G cross-attends to the
+   caption's word-token states (``Linear(token_dim -> h)``, sinusoidal positions) behind the pooled
+   condition token, as ``models.mld`` does for MLD. Padded words are masked; a dropped condition
+   (training dropout, CFG's unconditional pass) masks every word, so the memory is the null token
+   alone and the unconditional model cannot read the caption. D keeps the pooled embedding only.
+12. Text normalisation (``text_norm``, ours; the paper: False): G's and D's condition tokens are
+   ``Linear(LayerNorm(e))`` of the pooled embedding e (no affine), i.e. unit variance per dimension
+   whatever the encoder's scale. A unit-norm sentence embedding (MiniLM's) has entries of about
+   1 / sqrt(E); through a default-initialised Linear its token is then an order of magnitude smaller
+   than the sinusoidal position added to it, and the condition starts almost unread.
 """
 
 from __future__ import annotations
@@ -117,6 +127,7 @@ from models.transformer import PositionalEncoding, TransformerLayer, eval_mode, 
 Condition = Literal["text", "action"]
 EMDMActivation = Literal["selu", "gelu", "relu", "silu"]
 Lengths = Tensor | Sequence[int]
+Words = tuple[Tensor, Tensor]  # word-token states (B, M, H) and mask (B, M) bool, True on real tokens
 
 _F64 = torch.float64
 _PREFIX_G = 3  # generator tokens before the frames: timestep, condition, z
@@ -264,6 +275,9 @@ class EMDMConfig:
     (a small masked transformer, module docstring item 4; no dropout), ``d_time_dim`` (DDGAN's 128).
     ``patch_frames``: frames per token of G and D (module docstring item 9; the paper: 1).
     ``d_condition``: False gives D no condition (its condition token is 0): naive DDGAN (EMDM Table D8).
+    ``word_tokens``: G also cross-attends to the caption's word-token states (B, M, ``token_dim``) in
+    every layer (module docstring item 11; the paper: False, the pooled token only). ``text_norm``: G
+    and D standardise the pooled text embedding before their Linear (item 12; the paper: False).
     ``input_skip``: add a learned per-step multiple of x_{t+1} to G's output (module docstring item 10);
     ``skip_kernel`` (odd; 1: that multiple) widens it to a learned per-step filter over frames.
     Training: ``p_uncond`` (condition dropout, 0.1), ``r1_gamma`` (0.02), ``r1_interval`` (lazy R1
@@ -293,6 +307,9 @@ class EMDMConfig:
     d_condition: bool = True
     input_skip: bool = False
     skip_kernel: int = 1
+    word_tokens: bool = False
+    token_dim: int = 384
+    text_norm: bool = False
     p_uncond: float = 0.1
     r1_gamma: float = 0.02
     r1_interval: int = 15
@@ -341,14 +358,15 @@ def _as_config(config: EMDMConfig | Mapping[str, Any] | None) -> EMDMConfig:
 
 
 def _transformer_layers(
-    num: int, dim: int, heads: int, ff_dim: int, dropout: float, activation: str, norm_first: bool
+    num: int, dim: int, heads: int, ff_dim: int, dropout: float, activation: str, norm_first: bool,
+    cross_attention: bool = False,
 ) -> nn.ModuleList:
     """``num`` :class:`TransformerLayer` s; SELU (not offered by the shared layer) replaces its FF activation."""
     layers = nn.ModuleList()
     for _ in range(num):
         layer = TransformerLayer(
             dim, heads, ff_dim, dropout, "gelu" if activation == "selu" else activation,  # type: ignore[arg-type]
-            norm_first=norm_first,
+            norm_first=norm_first, cross_attention=cross_attention,
         )
         if activation == "selu":
             layer.ff[1] = nn.SELU()
@@ -359,12 +377,14 @@ def _transformer_layers(
 class ConditionEmbedding(nn.Module):
     """Condition -> (B, dim): text (B, E) through ``Linear(E -> dim)``; action (B,) through a learned table.
 
-    The action table starts N(0, 1) as EMDM's ``nn.Parameter(randn(num_actions, d))``.
+    The action table starts N(0, 1) as EMDM's ``nn.Parameter(randn(num_actions, d))``. ``text_norm``:
+    the text embedding is standardised first (a LayerNorm without affine, module docstring item 12).
     """
 
-    def __init__(self, condition: Condition, dim: int, text_dim: int, num_actions: int) -> None:
+    def __init__(self, condition: Condition, dim: int, text_dim: int, num_actions: int,
+                 text_norm: bool = False) -> None:
         super().__init__()
-        self.condition = condition
+        self.condition, self.text_norm = condition, text_norm
         if condition == "text":
             self.embed: nn.Module = nn.Linear(text_dim, dim)
         else:
@@ -373,7 +393,8 @@ class ConditionEmbedding(nn.Module):
 
     def forward(self, cond: Tensor) -> Tensor:
         if self.condition == "text":
-            return self.embed(cond.to(self.embed.weight.dtype))
+            cond = cond.to(self.embed.weight.dtype)
+            return self.embed(F.layer_norm(cond, cond.shape[-1:]) if self.text_norm else cond)
         return self.embed(cond.long())
 
 
@@ -466,13 +487,14 @@ class EMDMGenerator(nn.Module):
         h = cfg.width
         self.frame_in = nn.Linear(cfg.patch_frames * cfg.feature_dim, h)
         self.time_mlp = nn.Sequential(nn.Linear(h, h), nn.SiLU(), nn.Linear(h, h))
-        self.cond_embed = ConditionEmbedding(cfg.condition, h, cfg.text_dim, cfg.num_actions)
+        self.cond_embed = ConditionEmbedding(cfg.condition, h, cfg.text_dim, cfg.num_actions, cfg.text_norm)
         self.null_cond = nn.Parameter(torch.zeros(h))
         self.mapping = mapping_network(cfg.z_dim, h, cfg.mapping_layers)
         self.pos_encoding = PositionalEncoding(h, "sinusoidal")
         self.layers = _transformer_layers(
-            cfg.layers, h, cfg.heads, cfg.ff_dim, cfg.dropout, cfg.activation, cfg.norm_first
+            cfg.layers, h, cfg.heads, cfg.ff_dim, cfg.dropout, cfg.activation, cfg.norm_first, cfg.word_tokens
         )
+        self.token_proj = nn.Linear(cfg.token_dim, h) if cfg.word_tokens else None
         self.frame_out = nn.Linear(h, cfg.patch_frames * cfg.feature_dim)
         self.skip = None
         if cfg.input_skip:
@@ -500,33 +522,56 @@ class EMDMGenerator(nn.Module):
         cond: Tensor,
         lengths: Lengths,
         drop_cond: Tensor | None = None,
+        words: Words | None = None,
     ) -> Tensor:
         """x0_hat (B, N, D) from x_next (B, N, D) at step t (B,) int, z (B, z_dim), cond, lengths (B,).
 
         ``cond``: (B, text_dim) float for text, (B,) int for action. ``drop_cond`` (B,) bool: use the
         null condition for those samples (condition dropout in training, the unconditional pass of CFG).
+        ``words``: (word-token states (B, M, token_dim), mask (B, M) bool True on real tokens), required
+        exactly when ``config.word_tokens``; a dropped sample attends to the null token alone.
         """
         b, n, _ = x_next.shape
         valid = _valid_mask(lengths, n, x_next.device)
         steps = _per_sample_steps(t, b, x_next.device)
         patches, token_valid = to_patches(x_next, valid, self.config.patch_frames)
         frames = self.frame_in(patches)
+        cond_token = self.condition_tokens(cond, drop_cond).to(frames.dtype)
         prefix = torch.stack(
             [
                 self.time_mlp(timestep_embedding(steps, self.config.width).to(frames.dtype)),
-                self.condition_tokens(cond, drop_cond).to(frames.dtype),
+                cond_token,
                 self.mapping(z.to(frames.dtype)),
             ],
             dim=1,
         )
         tokens = self.pos_encoding(torch.cat([prefix, frames], dim=1))
         padding = torch.cat([valid.new_zeros(b, _PREFIX_G), ~token_valid], dim=1)
+        memory = self.word_memory(cond_token, words, drop_cond)
         for layer in self.layers:
-            tokens = layer(tokens, padding)
+            tokens = layer(tokens, padding, *memory)
         out = from_patches(self.frame_out(tokens[:, _PREFIX_G:]), n, self.config.patch_frames)
         if self.skip is not None:
             out = out + self.skipped(x_next, steps, valid).to(out.dtype)
         return torch.where(valid[..., None], out, 0.0)
+
+    def word_memory(self, cond_token: Tensor, words: Words | None, drop_cond: Tensor | None) -> tuple[Tensor, ...]:
+        """The cross-attention memory ``[cond token, Linear(words)]`` (B, 1 + M, h) and its padding mask
+        (True = ignored): padded words, and every word of a dropped sample; () without word tokens."""
+        if (words is None) == self.config.word_tokens:
+            raise ValueError("words (word-token states and mask) must be given exactly when the generator has "
+                             f"word_tokens (it has word_tokens={self.config.word_tokens})")
+        if words is None:
+            return ()
+        states, mask = words
+        if states.shape[:2] != mask.shape or states.shape[0] != cond_token.shape[0]:
+            raise ValueError(f"words: states {tuple(states.shape)} and mask {tuple(mask.shape)} do not match a "
+                             f"batch of {cond_token.shape[0]}")
+        ignored = ~mask.to(cond_token.device).bool()
+        if drop_cond is not None:
+            ignored = ignored | drop_cond.to(cond_token.device).bool()[:, None]
+        memory = self.pos_encoding(torch.cat([cond_token[:, None], self.token_proj(states.to(cond_token.dtype))], 1))
+        return memory, torch.cat([ignored.new_zeros(ignored.shape[0], 1), ignored], dim=1)
 
     def skipped(self, x_next: Tensor, steps: Tensor, valid: Tensor) -> Tensor:
         """The input skip of ``x_next`` (B, N, D) at ``steps`` (B,): its per-step multiple, or its per-step
@@ -560,7 +605,7 @@ class EMDMDiscriminator(nn.Module):
         h, td = cfg.d_width, cfg.d_time_dim
         self.frame_in = nn.Linear(2 * cfg.patch_frames * cfg.feature_dim, h)
         self.time_mlp = nn.Sequential(nn.Linear(td, td), nn.LeakyReLU(0.2), nn.Linear(td, h))
-        self.cond_embed = (ConditionEmbedding(cfg.condition, h, cfg.text_dim, cfg.num_actions)
+        self.cond_embed = (ConditionEmbedding(cfg.condition, h, cfg.text_dim, cfg.num_actions, cfg.text_norm)
                            if cfg.d_condition else None)
         self.pos_encoding = PositionalEncoding(h, "sinusoidal")
         self.layers = _transformer_layers(cfg.d_layers, h, cfg.d_heads, cfg.d_ff_dim, 0.0, "gelu", False)
@@ -719,6 +764,7 @@ def discriminator_step_losses(
     lengths: Lengths,
     step: int,
     generator_rng: torch.Generator | None = None,
+    words: Words | None = None,
 ) -> dict[str, Tensor]:
     """D's objective on a batch x0 (B, N, D) (Eq. 14 + lazy R1): ``total = real + fake + scale * r1``.
 
@@ -743,7 +789,8 @@ def discriminator_step_losses(
         r1 = real_logits.new_zeros(())
     with torch.no_grad():
         drop = condition_dropout(b, cfg.p_uncond, generator_rng, x0.device)
-        x0_hat = generator(x_next, t, _randn((b, cfg.z_dim), x0, generator_rng), cond, lengths, drop_cond=drop)
+        x0_hat = generator(x_next, t, _randn((b, cfg.z_dim), x0, generator_rng), cond, lengths, drop_cond=drop,
+                           words=words)
         fake_t = schedule.posterior_sample(x0_hat, x_next, t, _randn(x0.shape, x0, generator_rng))
     fake_logits = discriminator(fake_t, x_next, t, cond, lengths)
     real, fake = F.softplus(-real_logits).mean(), F.softplus(fake_logits).mean()
@@ -760,6 +807,7 @@ def generator_step_losses(
     mean: Tensor | np.ndarray,
     std: Tensor | np.ndarray,
     generator_rng: torch.Generator | None = None,
+    words: Words | None = None,
 ) -> dict[str, Tensor]:
     """G's objective on a batch x0 (B, N, D) (Eqs. 12, 15): ``total = adv + R * geo``.
 
@@ -775,7 +823,8 @@ def generator_step_losses(
     t = sample_timesteps(b, schedule.num_steps, generator_rng, _rng_device(generator_rng, x0.device)).to(x0.device)
     _, x_next = q_sample_pairs(schedule, x0, t, generator_rng)
     drop = condition_dropout(b, cfg.p_uncond, generator_rng, x0.device)
-    x0_hat = generator(x_next, t, _randn((b, cfg.z_dim), x0, generator_rng), cond, lengths, drop_cond=drop)
+    x0_hat = generator(x_next, t, _randn((b, cfg.z_dim), x0, generator_rng), cond, lengths, drop_cond=drop,
+                       words=words)
     fake_t = schedule.posterior_sample(x0_hat, x_next, t, _randn(x0.shape, x0, generator_rng))
     adv = g_adversarial_loss(discriminator(fake_t, x_next, t, cond, lengths))
     geo = geometric_losses(
@@ -797,6 +846,7 @@ def guided_x0(
     cond: Tensor,
     lengths: Lengths,
     guidance: float = 2.5,
+    words: Words | None = None,
 ) -> Tensor:
     """Classifier-free guided prediction (Eq. 13): ``G(null) + s (G(c) - G(null))``, same z for both.
 
@@ -804,7 +854,7 @@ def guided_x0(
     ``guidance == 1`` runs the conditional pass alone.
     """
     if guidance == 1.0:
-        return generator(x_next, t, z, cond, lengths)
+        return generator(x_next, t, z, cond, lengths, words=words)
     b = x_next.shape[0]
     steps = _per_sample_steps(t, b, x_next.device)
     lengths_t = torch.as_tensor(lengths, device=x_next.device)
@@ -812,6 +862,7 @@ def guided_x0(
     out = generator(
         torch.cat([x_next, x_next]), torch.cat([steps, steps]), torch.cat([z, z]), torch.cat([cond, cond]),
         torch.cat([lengths_t, lengths_t]), drop_cond=drop,
+        words=None if words is None else (torch.cat([words[0], words[0]]), torch.cat([words[1], words[1]])),
     )
     uncond, conditional = out.chunk(2)
     return cfg_combine(uncond, conditional, guidance)
@@ -828,6 +879,7 @@ def sample_emdm(
     *,
     num_frames: int | None = None,
     x_T: Tensor | None = None,
+    words: Words | None = None,
 ) -> Tensor:
     """EMDM sampling (Alg. 1): cond (B, ...) and lengths (B,) -> normalised features (B, N, D).
 
@@ -840,6 +892,7 @@ def sample_emdm(
     cfg = generator.config
     device = next(generator.parameters()).device
     cond = cond.to(device)
+    words = None if words is None else (words[0].to(device), words[1].to(device))
     lengths_t = torch.as_tensor(lengths, device=device)
     b = lengths_t.shape[0]
     n = int(lengths_t.max()) if num_frames is None else int(num_frames)
@@ -852,7 +905,7 @@ def sample_emdm(
         for step in reversed(range(schedule.num_steps)):
             t = torch.full((b,), step, dtype=torch.long, device=device)
             z = _randn((b, cfg.z_dim), ref, generator_rng)
-            x0_hat = torch.where(valid, guided_x0(generator, x, t, z, cond, lengths_t, guidance), 0.0)
+            x0_hat = torch.where(valid, guided_x0(generator, x, t, z, cond, lengths_t, guidance, words), 0.0)
             if step == 0:
                 return x0_hat
             x = torch.where(valid, schedule.posterior_sample(x0_hat, x, t, _randn(x.shape, ref, generator_rng)), 0.0)

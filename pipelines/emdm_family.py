@@ -22,6 +22,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 import torch
 
+from data.motion_dataset import pad_tokens
 from models.emdm import EMDMConfig, EMDMGenerator, EMDMSchedule, sample_emdm
 from models.generator import Generator, TextBatch
 from pipelines.checkpoint import load_final_model
@@ -62,8 +63,10 @@ class EMDMGeneratorRow:
     def sample(self, text: TextBatch, lengths: np.ndarray, seed: int) -> np.ndarray:
         rng = torch.Generator().manual_seed(seed)
         cond = torch.from_numpy(np.asarray(text.pooled, np.float32))
+        words = pad_tokens([np.asarray(t, np.float32) for t in text.tokens]) if self.generator.config.word_tokens \
+            else None
         out = sample_emdm(self.generator, self.schedule, cond, torch.as_tensor(np.asarray(lengths, np.int64)),
-                          self.guidance, rng)
+                          self.guidance, rng, words=words)
         return out.float().cpu().numpy()
 
 

@@ -39,7 +39,7 @@ SECTION_KEYS = ("condition", "num_steps", "lr_g", "lr_d", "ema_decay", "geometri
 #: and the training keys above).
 MODEL_KEYS = ("width", "layers", "heads", "ff_dim", "dropout", "activation", "norm_first", "z_dim", "mapping_layers",
               "d_width", "d_layers", "d_heads", "d_ff_dim", "d_time_dim", "patch_frames", "d_condition",
-              "input_skip", "skip_kernel")
+              "input_skip", "skip_kernel", "word_tokens", "text_norm")
 CONDITIONS = ("text", "action")
 
 
@@ -49,7 +49,8 @@ def dataset(config: dict) -> MotionTextDataset | ActionClips:
     if config["model"]["condition"] == "action":
         return ActionClips(config["features_dir"], config["classes"], config["mean"], config["std"],
                            config["crop_frames"])
-    return MotionTextDataset(config["features_dir"], "train", config["mean"], config["std"], config["crop_frames"])
+    return MotionTextDataset(config["features_dir"], "train", config["mean"], config["std"], config["crop_frames"],
+                             word_tokens=config["max_text_tokens"] if config["model"]["word_tokens"] else 0)
 
 
 def build(config: dict) -> Components:
@@ -78,14 +79,15 @@ def step(batch: dict, ctx: StepContext) -> dict[str, torch.Tensor]:
     schedule = ctx.frozen["schedule"]
     x0, lengths = batch["motion"], batch["length"]
     cond = batch["label"] if generator.config.condition == "action" else batch["text"]
+    words = (batch["tokens"], batch["token_mask"]) if generator.config.word_tokens else None
 
-    d = discriminator_step_losses(generator, discriminator, schedule, x0, cond, lengths, ctx.step)
+    d = discriminator_step_losses(generator, discriminator, schedule, x0, cond, lengths, ctx.step, words=words)
     ctx.update(d["total"], "d")
 
     discriminator.requires_grad_(False)  # G's loss needs dD/dx only; D's gradients would be thrown away
     try:
         g = generator_step_losses(generator, discriminator, schedule, x0, cond, lengths, ctx.frozen["mean"],
-                                  ctx.frozen["std"])
+                                  ctx.frozen["std"], words=words)
         ctx.update(g["total"], "g")
     finally:
         discriminator.requires_grad_(True)
@@ -133,12 +135,16 @@ def check_section(cfg: dict[str, Any], section: str = "train_emdm") -> None:
 
 
 def model_config(cfg: dict[str, Any], feature_dim: int, text_dim: int, num_actions: int = 0,
-                 section: str = "train_emdm") -> dict[str, Any]:
+                 section: str = "train_emdm", token_dim: int | None = None) -> dict[str, Any]:
     """The :class:`EMDMConfig` of a checked section, as a plain dict (sampling guidance left out: it is
-    ``sample.emdm_guidance``, a sampling setting)."""
-    model = {**cfg["model"], "feature_dim": feature_dim, "condition": cfg["condition"], "text_dim": text_dim,
-             "num_actions": num_actions, "p_uncond": cfg["p_uncond"], "r1_gamma": cfg["r1_gamma"],
-             "r1_interval": cfg["r1_interval"], "geo_weight": cfg["geometric_weight"],
+    ``sample.emdm_guidance``, a sampling setting). ``model.word_tokens`` and ``model.text_norm`` hold
+    for text only: action labels have no words (the action section shares the text section's model)."""
+    text = cfg["condition"] == "text"
+    model = {**cfg["model"], "word_tokens": cfg["model"]["word_tokens"] and text,
+             "text_norm": cfg["model"]["text_norm"] and text,
+             "feature_dim": feature_dim, "condition": cfg["condition"], "text_dim": text_dim,
+             "num_actions": num_actions, "token_dim": token_dim or text_dim, "p_uncond": cfg["p_uncond"],
+             "r1_gamma": cfg["r1_gamma"], "r1_interval": cfg["r1_interval"], "geo_weight": cfg["geometric_weight"],
              "geo_lambda": cfg["geometric_lambda"], "num_steps": cfg["num_steps"]}
     try:
         checked = EMDMConfig(**model)
@@ -166,11 +172,14 @@ def stage_config(params: dict[str, Any], section: str = "train_emdm") -> dict[st
         if len(classes) < 2:
             raise ValueError(f"{section}.condition: action needs labelled motions of at least 2 actions; "
                              f"{store.path} has {len(classes)} (does the dataset have actions.txt?)")
+    encoder = store.text_encoder_meta
     out = {
         "features_dir": str(store.path), "mean": store.mean.tolist(), "std": store.std.tolist(),
+        "max_text_tokens": int(encoder["max_length"]),
         "crop_frames": cfg["crop_frames"], "lr_g": float(cfg["lr_g"]), "lr_d": float(cfg["lr_d"]),
         "ema_decay": float(cfg["ema_decay"]),
-        "model": model_config(cfg, store.feature_dim, int(store.text_encoder_meta["dim"]), len(classes), section),
+        "model": model_config(cfg, store.feature_dim, int(encoder["dim"]), len(classes), section,
+                              int(encoder["token_dim"])),
     }
     if out["model"]["input_skip"] and out["model"]["skip_kernel"] > 1:
         mean, std = torch.tensor(store.mean), torch.tensor(store.std)

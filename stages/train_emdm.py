@@ -4,7 +4,8 @@
 :class:`models.emdm.EMDMDiscriminator` through the one runner, as two models with two Adam
 optimisers (betas (0.5, 0.9), no weight decay; EMDM's code) and an EMA of the generator. The data
 are the training motions of the feature store (normalised with its Mean/Std, random windows of
-``crop_frames``), each with the pooled frozen embedding of one of its captions. One runner step is
+``crop_frames``), each with the pooled frozen embedding of one of its captions (and, with
+``model.word_tokens``, that caption's word-token states, which G cross-attends to). One runner step is
 DDGAN's iteration (EMDM App. C.3, :mod:`models.emdm` docstring items 5-7):
 
 1. one D update: non-saturating softplus loss on a real pair ``(x_t, x_{t+1})`` and a fake ``x_t``

@@ -48,6 +48,14 @@ def test_code_deps_are_exactly_the_imported_modules(name: str) -> None:
 
 
 @pytest.mark.parametrize("name", sorted(DVC))
+def test_no_dep_or_out_is_listed_twice(name: str) -> None:
+    for key in ("deps", "outs"):
+        listed = [str(entry) for entry in DVC[name].get(key, [])]
+        twice = sorted({entry for entry in listed if listed.count(entry) > 1})
+        assert not twice, f"dvc.yaml stage {name}: {key} {twice} listed more than once"
+
+
+@pytest.mark.parametrize("name", sorted(DVC))
 def test_params_are_exactly_the_keys_the_stage_reads(name: str) -> None:
     _, params = declared(name)
     assert sorted(DVC[name].get("params", [])) == sorted(params), (

@@ -420,6 +420,42 @@ def test_condition_dropout_rate_and_null_condition() -> None:
     assert not torch.allclose(a[1], b[1])
 
 
+def test_word_tokens_read_real_words_only_and_never_when_dropped() -> None:
+    gen, _ = _nets(word_tokens=True, token_dim=6)
+    gen.eval()
+    g = _gen(13)
+    x, z, t = torch.randn(3, 5, D, generator=g), torch.randn(3, 4, generator=g), torch.tensor([1, 2, 3])
+    cond, states = torch.randn(3, E, generator=g), torch.randn(3, 4, 6, generator=g)
+    mask = torch.tensor([[True, True, False, False], [True, True, True, True], [True, False, False, False]])
+    drop = torch.tensor([False, False, True])
+    out = gen(x, t, z, cond, [5, 5, 4], drop_cond=drop, words=(states, mask))
+    padded = torch.where(mask[..., None], states, torch.randn(3, 4, 6, generator=g))
+    torch.testing.assert_close(gen(x, t, z, cond, [5, 5, 4], drop_cond=drop, words=(padded, mask)), out,
+                               rtol=0, atol=0)  # padded words are ignored
+    other = gen(x, t, z, cond, [5, 5, 4], drop_cond=drop, words=(states.flip(0), mask.flip(0)))
+    torch.testing.assert_close(other[2], out[2], rtol=0, atol=0)  # dropped: no word is read
+    assert not torch.allclose(other[0], out[0])  # kept: the words steer the output
+    uncond = gen(x, t, z, cond, [5, 5, 4], drop_cond=torch.ones(3, dtype=torch.bool), words=(states, mask))
+    guided = guided_x0(gen, x, t, z, cond, [5, 5, 4], 2.5, words=(states, mask))
+    conditional = gen(x, t, z, cond, [5, 5, 4], words=(states, mask))
+    torch.testing.assert_close(guided, uncond + 2.5 * (conditional - uncond), rtol=1e-5, atol=1e-5)
+    with pytest.raises(ValueError, match="word_tokens"):
+        gen(x, t, z, cond, [5, 5, 4])
+    with pytest.raises(ValueError, match="word_tokens"):
+        _nets()[0](x, t, z, cond, [5, 5, 4], words=(states, mask))
+
+
+def test_text_norm_standardises_the_pooled_embedding_for_g_and_d() -> None:
+    gen, disc = _nets(text_norm=True)
+    cond = torch.randn(2, E, generator=_gen(14))
+    for embed in (gen.cond_embed, disc.cond_embed):
+        standard = (cond - cond.mean(-1, keepdim=True)) / cond.std(-1, unbiased=False, keepdim=True)
+        torch.testing.assert_close(embed(cond), embed.embed(standard), rtol=1e-4, atol=1e-5)
+        torch.testing.assert_close(embed(10.0 * cond + 3.0), embed(cond), rtol=1e-4, atol=1e-4)  # any scale
+    plain, _ = _nets()
+    torch.testing.assert_close(plain.cond_embed(cond), plain.cond_embed.embed(cond))
+
+
 def test_action_condition() -> None:
     gen, disc = _nets(condition="action", num_actions=5)
     assert gen.config.geometric_weight == 1.0 and EMDMConfig(**TINY).geometric_weight == 100.0
@@ -467,8 +503,9 @@ class _ConstantX0(nn.Module):
 
     def forward(
         self, x: torch.Tensor, t: torch.Tensor, z: torch.Tensor, cond: torch.Tensor, lengths: torch.Tensor,
-        drop_cond: torch.Tensor | None = None,
+        drop_cond: torch.Tensor | None = None, words: tuple[torch.Tensor, torch.Tensor] | None = None,
     ) -> torch.Tensor:
+        assert words is None
         dropped = None if drop_cond is None else drop_cond.tolist()
         self.calls.append((x.shape[0], sorted(set(t.tolist())), dropped))
         valid = torch.arange(x.shape[1])[None, :] < torch.as_tensor(lengths)[:, None]

@@ -36,7 +36,8 @@ FIXTURES = Path(__file__).parent / "fixtures" / "humanml3d"
 TINY_MODEL = {"width": 16, "layers": 1, "heads": 2, "ff_dim": 32, "dropout": 0.0, "activation": "selu",
               "norm_first": False, "z_dim": 4, "mapping_layers": 2, "d_width": 16, "d_layers": 1, "d_heads": 2,
               "d_ff_dim": 16, "d_time_dim": 8, "patch_frames": 1,
-              "d_condition": True, "input_skip": False, "skip_kernel": 1}
+              "d_condition": True, "input_skip": False, "skip_kernel": 1, "word_tokens": False,
+              "text_norm": False}
 LOOP = {"seed": 0, "batch_size": 8, "max_steps": 6, "grad_clip": 1.0, "lr_schedule": "constant", "warmup_steps": 0,
         "min_lr_ratio": 0.0, "log_every": 3, "num_data_workers": 0, "length_buckets": 0}
 
@@ -52,7 +53,7 @@ def emdm_section(**overrides: Any) -> dict[str, Any]:
 @pytest.fixture(scope="module")
 def params(small_store) -> dict[str, Any]:
     params = copy.deepcopy(small_store)
-    params["train_emdm"] = emdm_section()
+    params["train_emdm"] = emdm_section(model=TINY_MODEL | {"word_tokens": True})  # the runner serves word tokens
     params["sample"]["emdm_guidance"] = 2.5
     params["ray"].update(num_workers=1, cpus_per_worker=1, checkpoint_every=3, max_failures=0)
     return params
@@ -159,8 +160,10 @@ def test_action_condition_trains_on_labels_with_r_one() -> None:
 
 
 def test_action_stage_reads_the_labelled_classes_of_the_store(params) -> None:
-    action = copy.deepcopy(params) | {"train_emdm_action": emdm_section(condition="action")}
+    section = emdm_section(condition="action", model=TINY_MODEL | {"word_tokens": True, "text_norm": True})
+    action = copy.deepcopy(params) | {"train_emdm_action": section}
     config = emdm_training.stage_config(action, "train_emdm_action")
+    assert config["model"]["word_tokens"] is config["model"]["text_norm"] is False  # labels have no text
     store = FeatureStore(config["features_dir"])
     assert config["classes"] == list(action_classes(store.split("train"))) and len(config["classes"]) >= 2
     assert config["model"]["num_actions"] == len(config["classes"])
@@ -228,6 +231,7 @@ def test_gan_step_through_ray_resumes_exactly(params, ray_cluster, tmp_path: Pat
     logged losses (R1 on steps 0, 2, 4 included)."""
     config = loop_config(train_emdm.STAGE, params)
     assert config["model"]["text_dim"] == 384 and config["model"]["r1_interval"] == 2
+    assert config["model"]["word_tokens"] and config["max_text_tokens"] == 32
     storage = str(tmp_path / "ray")
     straight = run_training("emdm", train_emdm.STAGE.spec, config | {"max_steps": 6}, params["ray"],
                             tmp_path / "straight", storage)
