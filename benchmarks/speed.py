@@ -32,12 +32,12 @@ from stages.evaluate import eval_config  # noqa: E402
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("families", nargs="+", help="family names, e.g. emdm motiondiffuse")
+    parser.add_argument("families", nargs="+", help="family names (e.g. emdm motiondiffuse), then key=value overrides")
     parser.add_argument("--rows", nargs="*", default=None, help="row names (default: every generator row)")
     parser.add_argument("--rounds", type=int, default=2, help="timing rounds, the row order alternating")
-    args, overrides = parser.parse_known_args()
-    names = [name for name in args.families if "=" not in name]
-    params = load_params([*overrides, *(name for name in args.families if "=" in name)])
+    args = parser.parse_args()
+    names = [arg for arg in args.families if "=" not in arg]
+    params = load_params([arg for arg in args.families if "=" in arg])
     cfg = eval_config(params["evaluate"])
     ctx = EvalContext(params, artifacts_dir(params), repo_path(params, "features.out"))
     rows = [row for name in names for row in family(name).build_rows(ctx)

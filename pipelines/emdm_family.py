@@ -63,8 +63,7 @@ class EMDMGeneratorRow:
     def sample(self, text: TextBatch, lengths: np.ndarray, seed: int) -> np.ndarray:
         rng = torch.Generator().manual_seed(seed)
         cond = torch.from_numpy(np.asarray(text.pooled, np.float32))
-        words = pad_tokens([np.asarray(t, np.float32) for t in text.tokens]) if self.generator.config.word_tokens \
-            else None
+        words = pad_tokens(text.tokens) if self.generator.config.word_tokens else None
         out = sample_emdm(self.generator, self.schedule, cond, torch.as_tensor(np.asarray(lengths, np.int64)),
                           self.guidance, rng, words=words)
         return out.float().cpu().numpy()
