@@ -14,9 +14,11 @@ Contents:
 - :class:`EMDMConfig`, :class:`EMDMGenerator` ``G(x_{t+1}, t, z, c) -> x0_hat`` (Eq. 3) and
   :class:`EMDMDiscriminator` ``D(x_t, x_{t+1}, t, c) -> logit`` (Eqs. 4-5).
 - Losses: :func:`d_adversarial_loss` (Eq. 4), :func:`g_adversarial_loss` (Eq. 6), :func:`r1_penalty`
-  (Eq. 16) with :func:`lazy_r1_scale`, :func:`geometric_losses` (Eqs. 7-12), and the two per-step
-  compositions :func:`discriminator_step_losses` / :func:`generator_step_losses` (Eqs. 14-15).
-- Sampling: :func:`guided_x0` (Eq. 13) and :func:`sample_emdm` (Alg. 1).
+  (Eq. 16) with :func:`lazy_r1_scale`, :func:`geometric_losses` (Eqs. 7-12), and one training step:
+  :func:`draw_fake` (the step's draw and G forward), :func:`discriminator_step_losses` /
+  :func:`generator_step_losses` (Eqs. 14-15).
+- Sampling: :func:`guided_x0` (Eq. 13) and :func:`sample_emdm` (Alg. 1), which computes G's
+  condition part (:meth:`EMDMGenerator.conditioning`, :func:`guidance_batch`) once, not per step.
 
 Indexing (DDGAN's, which the code of both papers uses). States are levels ``k = 0..T``: ``x_0`` is
 the data, ``x_T`` ~ N(0, I). A step index ``t in 0..T-1`` names the transition ``x_t -> x_{t+1}``:
@@ -65,9 +67,13 @@ Choices where the paper (or its code) is ambiguous or where we depart from it, e
    (the features' contacts group, denormalised and thresholded at 0.5) is on; HumanML3D defines
    that label from the same i -> i+1 displacement. R = 100 for text, 1 for action (Sec. 5.2);
    lambda defaults to 1 (the paper uses 1 for action, 0 for text: set ``geo_lambda``).
-7. One generator step uses ONE draw of (t, pair, z) for both the adversarial and the geometric
-   term (the code draws them independently, which costs a second G forward). The fake ``x_t`` of
-   the D step is computed without gradient into G (the code builds that graph and discards it).
+7. One training step uses ONE draw of (t, real pair, condition dropout, z, posterior noise) and ONE
+   G forward (:func:`draw_fake`) for the D update, the adversarial term and the geometric term of
+   the G update, as PyTorch's DCGAN example reuses its fake batch: D learns on the detached fake
+   sample, then G is scored on that same sample by the updated D. DDGAN's and EMDM's code draw
+   afresh for the G update (and draw the adversarial and geometric terms' inputs independently),
+   which costs a second and a third G forward and three more noise tensors of the batch's size;
+   the draws stay independent from step to step, so each update's gradient is unbiased as before.
 8. Classifier-free guidance (Eq. 13) on x0 with the same z for both passes; the unconditional and
    conditional passes run in one forward on the doubled batch; guidance 1 runs the conditional
    pass only.
@@ -111,7 +117,7 @@ import math
 from collections.abc import Iterator, Mapping, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass
-from typing import Any, Literal
+from typing import Any, Literal, NamedTuple
 
 import numpy as np
 import torch
@@ -128,6 +134,14 @@ Condition = Literal["text", "action"]
 EMDMActivation = Literal["selu", "gelu", "relu", "silu"]
 Lengths = Tensor | Sequence[int]
 Words = tuple[Tensor, Tensor]  # word-token states (B, M, H) and mask (B, M) bool, True on real tokens
+
+
+class Conditioning(NamedTuple):
+    """G's step-independent inputs (:meth:`EMDMGenerator.conditioning`): the condition token (B, h)
+    and the word memory with its padding mask (``()`` without word tokens)."""
+
+    token: Tensor
+    memory: tuple[Tensor, ...]
 
 _F64 = torch.float64
 _PREFIX_G = 3  # generator tokens before the frames: timestep, condition, z
@@ -531,25 +545,35 @@ class EMDMGenerator(nn.Module):
         ``words``: (word-token states (B, M, token_dim), mask (B, M) bool True on real tokens), required
         exactly when ``config.word_tokens``; a dropped sample attends to the null token alone.
         """
+        return self.denoise(x_next, t, z, lengths, self.conditioning(cond, drop_cond, words))
+
+    def conditioning(self, cond: Tensor, drop_cond: Tensor | None = None, words: Words | None = None) -> Conditioning:
+        """The step-independent part of :meth:`forward` (its arguments as there): a sampler computes it
+        once per batch and calls :meth:`denoise` at every step."""
+        cond_token = self.condition_tokens(cond, drop_cond)
+        return Conditioning(cond_token, self.word_memory(cond_token, words, drop_cond))
+
+    def denoise(
+        self, x_next: Tensor, t: Tensor | int, z: Tensor, lengths: Lengths, conditioning: Conditioning
+    ) -> Tensor:
+        """:meth:`forward` on a precomputed :meth:`conditioning` of the same batch."""
         b, n, _ = x_next.shape
         valid = _valid_mask(lengths, n, x_next.device)
         steps = _per_sample_steps(t, b, x_next.device)
         patches, token_valid = to_patches(x_next, valid, self.config.patch_frames)
         frames = self.frame_in(patches)
-        cond_token = self.condition_tokens(cond, drop_cond).to(frames.dtype)
         prefix = torch.stack(
             [
                 self.time_mlp(timestep_embedding(steps, self.config.width).to(frames.dtype)),
-                cond_token,
+                conditioning.token.to(frames.dtype),
                 self.mapping(z.to(frames.dtype)),
             ],
             dim=1,
         )
         tokens = self.pos_encoding(torch.cat([prefix, frames], dim=1))
         padding = torch.cat([valid.new_zeros(b, _PREFIX_G), ~token_valid], dim=1)
-        memory = self.word_memory(cond_token, words, drop_cond)
         for layer in self.layers:
-            tokens = layer(tokens, padding, *memory)
+            tokens = layer(tokens, padding, *conditioning.memory)
         out = from_patches(self.frame_out(tokens[:, _PREFIX_G:]), n, self.config.patch_frames)
         if self.skip is not None:
             out = out + self.skipped(x_next, steps, valid).to(out.dtype)
@@ -583,10 +607,13 @@ class EMDMGenerator(nn.Module):
         taps = self.skip.index_select(0, steps)
         if self.skip.ndim == 1:
             return taps[:, None, None] * x_next
-        k = self.skip.shape[-1]
-        x = torch.where(valid[..., None], x_next, 0.0)
-        windows = F.pad(x, (0, 0, k // 2, k // 2)).unfold(1, k, 1)  # (B, N, D, k)
-        return torch.einsum("bndk,bdk->bnd", windows, taps.to(x.dtype))
+        k, n = self.skip.shape[-1], x_next.shape[1]
+        x = F.pad(torch.where(valid[..., None], x_next, 0.0), (0, 0, k // 2, k // 2))
+        taps = taps.to(x.dtype).transpose(1, 2)  # (B, k, D)
+        out = torch.zeros_like(x_next)
+        for j in range(k):  # one shifted product per tap: no (B, N, D, k) window tensor
+            out.addcmul_(x[:, j:j + n], taps[:, j, None])
+        return out
 
 
 class EMDMDiscriminator(nn.Module):
@@ -755,29 +782,54 @@ def geometric_losses(
 # --------------------------------------------------------------------------------------------------
 
 
-def discriminator_step_losses(
+class FakeDraw(NamedTuple):
+    """One training step's draw (:func:`draw_fake`): steps t (B,), the real pair ``x_t``, ``x_{t+1}``
+    (B, N, D), G's ``x0_hat`` (with its graph) and the fake ``x_t`` posterior-sampled around it."""
+
+    t: Tensor
+    x_t: Tensor
+    x_next: Tensor
+    x0_hat: Tensor
+    fake_t: Tensor
+
+
+def draw_fake(
     generator: EMDMGenerator,
-    discriminator: EMDMDiscriminator,
     schedule: EMDMSchedule,
     x0: Tensor,
     cond: Tensor,
     lengths: Lengths,
-    step: int,
     generator_rng: torch.Generator | None = None,
     words: Words | None = None,
-) -> dict[str, Tensor]:
-    """D's objective on a batch x0 (B, N, D) (Eq. 14 + lazy R1): ``total = real + fake + scale * r1``.
+) -> FakeDraw:
+    """The draw both updates of a training step use (docstring item 7) for a batch x0 (B, N, D).
 
-    t ~ U{0..T-1}, a real pair (x_t, x_{t+1}) (:func:`q_sample_pairs`), a fake ``x_t`` = posterior
-    sample around ``G(x_{t+1}, t, z, c)`` (condition dropped w.p. ``p_uncond``, no gradient into G);
-    ``real = mean softplus(-D(x_t))``, ``fake = mean softplus(D(fake x_t))``; R1 on the real x_t with
-    weight :func:`lazy_r1_scale` (``step``, ``r1_interval``), ``r1`` reported unscaled (0 when skipped).
-    Only D's parameters receive gradients. All randomness from ``generator_rng``.
+    t ~ U{0..T-1}, a real pair (x_t, x_{t+1}) (:func:`q_sample_pairs`), ``x0_hat = G(x_{t+1}, t, z, c)``
+    with the condition dropped w.p. ``p_uncond`` (gradients flow into G) and the fake ``x_t`` =
+    posterior sample around it. All randomness from ``generator_rng``.
     """
     cfg = generator.config
     b = x0.shape[0]
     t = sample_timesteps(b, schedule.num_steps, generator_rng, _rng_device(generator_rng, x0.device)).to(x0.device)
     x_t, x_next = q_sample_pairs(schedule, x0, t, generator_rng)
+    drop = condition_dropout(b, cfg.p_uncond, generator_rng, x0.device)
+    x0_hat = generator(x_next, t, _randn((b, cfg.z_dim), x0, generator_rng), cond, lengths, drop_cond=drop,
+                       words=words)
+    fake_t = schedule.posterior_sample(x0_hat, x_next, t, _randn(x0.shape, x0, generator_rng))
+    return FakeDraw(t, x_t, x_next, x0_hat, fake_t)
+
+
+def discriminator_step_losses(
+    discriminator: EMDMDiscriminator, draw: FakeDraw, cond: Tensor, lengths: Lengths, step: int,
+) -> dict[str, Tensor]:
+    """D's objective on a :func:`draw_fake` (Eq. 14 + lazy R1): ``total = real + fake + scale * r1``.
+
+    ``real = mean softplus(-D(x_t))``, ``fake = mean softplus(D(fake x_t))`` (the fake detached: no
+    gradient into G); R1 on the real x_t with weight :func:`lazy_r1_scale` (``step``, ``r1_interval``),
+    ``r1`` reported unscaled (0 when skipped). D always sees the real condition (docstring item 3).
+    """
+    cfg = discriminator.config
+    t, x_t, x_next = draw.t, draw.x_t, draw.x_next
     scale = lazy_r1_scale(step, cfg.r1_interval)
     if scale > 0:
         x_t = x_t.detach().requires_grad_(True)
@@ -787,48 +839,31 @@ def discriminator_step_losses(
     else:
         real_logits = discriminator(x_t, x_next, t, cond, lengths)
         r1 = real_logits.new_zeros(())
-    with torch.no_grad():
-        drop = condition_dropout(b, cfg.p_uncond, generator_rng, x0.device)
-        x0_hat = generator(x_next, t, _randn((b, cfg.z_dim), x0, generator_rng), cond, lengths, drop_cond=drop,
-                           words=words)
-        fake_t = schedule.posterior_sample(x0_hat, x_next, t, _randn(x0.shape, x0, generator_rng))
-    fake_logits = discriminator(fake_t, x_next, t, cond, lengths)
+    fake_logits = discriminator(draw.fake_t.detach(), x_next, t, cond, lengths)
     real, fake = F.softplus(-real_logits).mean(), F.softplus(fake_logits).mean()
     return {"real": real, "fake": fake, "r1": r1, "total": real + fake + scale * r1}
 
 
 def generator_step_losses(
-    generator: EMDMGenerator,
     discriminator: EMDMDiscriminator,
-    schedule: EMDMSchedule,
+    draw: FakeDraw,
     x0: Tensor,
     cond: Tensor,
     lengths: Lengths,
     mean: Tensor | np.ndarray,
     std: Tensor | np.ndarray,
-    generator_rng: torch.Generator | None = None,
-    words: Words | None = None,
 ) -> dict[str, Tensor]:
-    """G's objective on a batch x0 (B, N, D) (Eqs. 12, 15): ``total = adv + R * geo``.
+    """G's objective on a :func:`draw_fake` of x0 (B, N, D) (Eqs. 12, 15): ``total = adv + R * geo``.
 
-    One draw of t, pair, z and condition dropout (docstring item 7): ``x0_hat = G(x_{t+1}, t, z, c)``,
-    fake ``x_t`` = posterior sample, ``adv = mean softplus(-D(fake x_t, x_{t+1}, t, c))`` and
-    :func:`geometric_losses` of x0_hat against x0 (R = ``config.geometric_weight``, lambda =
-    ``geo_lambda``). Returns ``adv`` and the geometric terms (``recon``, ``pos``, ``vel``, ``foot``,
-    ``geo``), ``total``. Gradients also reach D's parameters: freeze D (``requires_grad_(False)``) or
-    zero its gradients before its own step.
+    ``adv = mean softplus(-D(fake x_t, x_{t+1}, t, c))`` and :func:`geometric_losses` of x0_hat against
+    x0 (R = ``config.geometric_weight``, lambda = ``geo_lambda``). Returns ``adv`` and the geometric
+    terms (``recon``, ``pos``, ``vel``, ``foot``, ``geo``), ``total``. Gradients also reach D's
+    parameters: freeze D (``requires_grad_(False)``) or zero its gradients before its own step.
     """
-    cfg = generator.config
-    b = x0.shape[0]
-    t = sample_timesteps(b, schedule.num_steps, generator_rng, _rng_device(generator_rng, x0.device)).to(x0.device)
-    _, x_next = q_sample_pairs(schedule, x0, t, generator_rng)
-    drop = condition_dropout(b, cfg.p_uncond, generator_rng, x0.device)
-    x0_hat = generator(x_next, t, _randn((b, cfg.z_dim), x0, generator_rng), cond, lengths, drop_cond=drop,
-                       words=words)
-    fake_t = schedule.posterior_sample(x0_hat, x_next, t, _randn(x0.shape, x0, generator_rng))
-    adv = g_adversarial_loss(discriminator(fake_t, x_next, t, cond, lengths))
+    cfg = discriminator.config
+    adv = g_adversarial_loss(discriminator(draw.fake_t, draw.x_next, draw.t, cond, lengths))
     geo = geometric_losses(
-        x0_hat, x0, lengths, mean, std, cfg.joints_num, weight=cfg.geometric_weight, lam=cfg.geo_lambda
+        draw.x0_hat, x0, lengths, mean, std, cfg.joints_num, weight=cfg.geometric_weight, lam=cfg.geo_lambda
     )
     return {"adv": adv, **{k: v for k, v in geo.items() if k != "total"}, "total": adv + geo["total"]}
 
@@ -850,19 +885,38 @@ def guided_x0(
 ) -> Tensor:
     """Classifier-free guided prediction (Eq. 13): ``G(null) + s (G(c) - G(null))``, same z for both.
 
-    The two passes run as ONE forward on the doubled batch ``[unconditional; conditional]``;
-    ``guidance == 1`` runs the conditional pass alone.
+    The two passes run as ONE forward on the doubled batch ``[unconditional; conditional]``
+    (:func:`guidance_batch`); ``guidance == 1`` runs the conditional pass alone.
     """
+    lengths_g, conditioning = guidance_batch(generator, cond, lengths, guidance, words)
+    return _guided(generator, x_next, t, z, lengths_g, conditioning, guidance)
+
+
+def guidance_batch(
+    generator: EMDMGenerator, cond: Tensor, lengths: Lengths, guidance: float, words: Words | None = None,
+) -> tuple[Tensor, Conditioning]:
+    """The lengths and the :meth:`EMDMGenerator.conditioning` that guided steps run on: for B samples,
+    the doubled batch ``[unconditional; conditional]`` (2B), or the B samples alone at guidance 1."""
+    device = next(generator.parameters()).device
+    lengths_t = torch.as_tensor(lengths, device=device)
     if guidance == 1.0:
-        return generator(x_next, t, z, cond, lengths, words=words)
-    b = x_next.shape[0]
-    steps = _per_sample_steps(t, b, x_next.device)
-    lengths_t = torch.as_tensor(lengths, device=x_next.device)
-    drop = torch.cat([torch.ones(b, dtype=torch.bool), torch.zeros(b, dtype=torch.bool)]).to(x_next.device)
-    out = generator(
-        torch.cat([x_next, x_next]), torch.cat([steps, steps]), torch.cat([z, z]), torch.cat([cond, cond]),
-        torch.cat([lengths_t, lengths_t]), drop_cond=drop,
-        words=None if words is None else (torch.cat([words[0], words[0]]), torch.cat([words[1], words[1]])),
+        return lengths_t, generator.conditioning(cond, None, words)
+    b = lengths_t.shape[0]
+    drop = torch.cat([torch.ones(b, dtype=torch.bool), torch.zeros(b, dtype=torch.bool)]).to(device)
+    doubled = None if words is None else (torch.cat([words[0], words[0]]), torch.cat([words[1], words[1]]))
+    return torch.cat([lengths_t, lengths_t]), generator.conditioning(torch.cat([cond, cond]), drop, doubled)
+
+
+def _guided(
+    generator: EMDMGenerator, x_next: Tensor, t: Tensor | int, z: Tensor, lengths: Tensor,
+    conditioning: Conditioning, guidance: float,
+) -> Tensor:
+    """Eq. 13 on a :func:`guidance_batch` (``lengths`` and ``conditioning`` as it returns them)."""
+    if guidance == 1.0:
+        return generator.denoise(x_next, t, z, lengths, conditioning)
+    steps = _per_sample_steps(t, x_next.shape[0], x_next.device)
+    out = generator.denoise(
+        torch.cat([x_next, x_next]), torch.cat([steps, steps]), torch.cat([z, z]), lengths, conditioning
     )
     uncond, conditional = out.chunk(2)
     return cfg_combine(uncond, conditional, guidance)
@@ -885,9 +939,10 @@ def sample_emdm(
 
     ``x_T ~ N(0, I)`` (or ``x_T``), N = ``num_frames`` or ``max(lengths)``; for t = T-1..0 draw a fresh
     z, ``x0_hat = guided_x0(x_{t+1}, t, z)`` and ``x_t = posterior_sample(x0_hat, x_{t+1}, t)``
-    (Alg. 2); the last step returns x0_hat itself (the posterior at t = 0). Padded frames are 0.
-    Runs G in eval mode (restored afterwards); every draw comes from ``generator_rng`` (deterministic
-    for a seeded generator).
+    (Alg. 2); the last step returns x0_hat itself (the posterior at t = 0). Padded frames are 0 (G
+    zeroes its output there). The condition's part of G (:func:`guidance_batch`) is computed once,
+    not at every step. Runs G in eval mode (restored afterwards); every draw comes from
+    ``generator_rng`` (deterministic for a seeded generator).
     """
     cfg = generator.config
     device = next(generator.parameters()).device
@@ -902,10 +957,11 @@ def sample_emdm(
     x = _randn((b, n, cfg.feature_dim), ref, generator_rng) if x_T is None else x_T.to(device, dtype)
     x = torch.where(valid, x, 0.0)
     with eval_mode(generator):
+        lengths_g, conditioning = guidance_batch(generator, cond, lengths_t, guidance, words)
         for step in reversed(range(schedule.num_steps)):
             t = torch.full((b,), step, dtype=torch.long, device=device)
             z = _randn((b, cfg.z_dim), ref, generator_rng)
-            x0_hat = torch.where(valid, guided_x0(generator, x, t, z, cond, lengths_t, guidance, words), 0.0)
+            x0_hat = _guided(generator, x, t, z, lengths_g, conditioning, guidance)
             if step == 0:
                 return x0_hat
             x = torch.where(valid, schedule.posterior_sample(x0_hat, x, t, _randn(x.shape, ref, generator_rng)), 0.0)

@@ -11,6 +11,7 @@ import torch
 from torch import nn
 
 from models.emdm import (
+    Conditioning,
     EMDMConfig,
     EMDMDiscriminator,
     EMDMGenerator,
@@ -18,6 +19,7 @@ from models.emdm import (
     condition_dropout,
     d_adversarial_loss,
     discriminator_step_losses,
+    draw_fake,
     from_patches,
     g_adversarial_loss,
     generator_step_losses,
@@ -493,20 +495,28 @@ def test_classifier_free_guidance() -> None:
 
 
 class _ConstantX0(nn.Module):
-    """A stand-in generator predicting a fixed x0 (zero at padding); records each call's batch and steps."""
+    """A stand-in generator predicting a fixed x0 (zero at padding); records each step's batch, steps and
+    dropped conditions, and each :meth:`conditioning` call."""
 
     def __init__(self, x0: torch.Tensor) -> None:
         super().__init__()
         self.config = EMDMConfig(**TINY)
         self.x0 = nn.Parameter(x0)
         self.calls: list[tuple[int, list[int], list[bool] | None]] = []
+        self.conditionings = 0
 
-    def forward(
-        self, x: torch.Tensor, t: torch.Tensor, z: torch.Tensor, cond: torch.Tensor, lengths: torch.Tensor,
-        drop_cond: torch.Tensor | None = None, words: tuple[torch.Tensor, torch.Tensor] | None = None,
-    ) -> torch.Tensor:
+    def conditioning(
+        self, cond: torch.Tensor, drop_cond: torch.Tensor | None = None,
+        words: tuple[torch.Tensor, torch.Tensor] | None = None,
+    ) -> Conditioning:
         assert words is None
-        dropped = None if drop_cond is None else drop_cond.tolist()
+        self.conditionings += 1
+        return Conditioning(cond, () if drop_cond is None else (drop_cond,))
+
+    def denoise(
+        self, x: torch.Tensor, t: torch.Tensor, z: torch.Tensor, lengths: torch.Tensor, conditioning: Conditioning,
+    ) -> torch.Tensor:
+        dropped = conditioning.memory[0].tolist() if conditioning.memory else None
         self.calls.append((x.shape[0], sorted(set(t.tolist())), dropped))
         valid = torch.arange(x.shape[1])[None, :] < torch.as_tensor(lengths)[:, None]
         return self.x0.repeat(x.shape[0] // self.x0.shape[0], 1, 1) * valid[..., None]
@@ -521,9 +531,10 @@ def test_sampler_returns_x0_hat_with_one_batched_forward_per_step() -> None:
     assert torch.equal(out[1, 3:], torch.zeros(2, D))
     # one call per step t = 9..0 on the doubled batch [unconditional; conditional]
     assert stub.calls == [(4, [s], [True, True, False, False]) for s in range(9, -1, -1)]
+    assert stub.conditionings == 1  # the condition's part of G once per sampling call, not per step
     stub.calls.clear()
     sample_emdm(stub, schedule, torch.randn(2, E), [5, 3], guidance=1.0, generator_rng=_gen(15))
-    assert stub.calls == [(2, [s], None) for s in range(9, -1, -1)]
+    assert stub.calls == [(2, [s], None) for s in range(9, -1, -1)] and stub.conditionings == 2
 
 
 def test_sampler_is_deterministic_and_zero_on_padding() -> None:
@@ -537,6 +548,29 @@ def test_sampler_is_deterministic_and_zero_on_padding() -> None:
     assert torch.equal(a[1, 4:], torch.zeros(2, D)) and a[1, :4].abs().sum() > 0
     assert gen.training  # the mode is restored
     assert sample_emdm(gen, schedule, cond, lengths, 2.5, _gen(17), num_frames=9).shape == (2, 9, D)
+
+
+def test_sampler_with_conditioning_computed_once_equals_algorithm_1_step_by_step() -> None:
+    """sample_emdm computes G's condition part once; Alg. 1 written out with guided_x0 at every step
+    (the condition recomputed each time) must give the same sample, bit for bit."""
+    gen, _ = _nets(word_tokens=True, token_dim=6, input_skip=True, skip_kernel=3)
+    g = _gen(19)
+    cond, states = torch.randn(2, E, generator=g), torch.randn(2, 3, 6, generator=g)
+    words, lengths = (states, torch.tensor([[True, True, False], [True, True, True]])), torch.tensor([7, 5])
+    schedule = EMDMSchedule()
+    for guidance in (2.5, 1.0):
+        out = sample_emdm(gen, schedule, cond, lengths, guidance, _gen(20), words=words)
+        rng, valid = _gen(20), lengths_to_mask(lengths, 7)[..., None]
+        x = torch.randn(2, 7, D, generator=rng) * valid
+        gen.eval()
+        with torch.no_grad():
+            for step in range(9, -1, -1):
+                t, z = torch.full((2,), step), torch.randn(2, 4, generator=rng)
+                x0_hat = guided_x0(gen, x, t, z, cond, lengths, guidance, words)
+                if step > 0:
+                    x = schedule.posterior_sample(x0_hat, x, t, torch.randn(x.shape, generator=rng)) * valid
+        gen.train()
+        assert torch.equal(out, x0_hat) and torch.equal(out[1, 5:], torch.zeros(2, D))
 
 
 # --------------------------------------------------------------------------------------------------
@@ -555,8 +589,12 @@ def test_one_training_step_of_d_and_g(real) -> None:
     opt_d = torch.optim.Adam(disc.parameters(), lr=1e-4, betas=(0.5, 0.9))
     opt_g = torch.optim.Adam(gen.parameters(), lr=1e-4, betas=(0.5, 0.9))
 
+    # the draw: a real pair and a fake x_t at the same steps, zero at padding, G's graph kept
+    draw = draw_fake(gen, schedule, x0, cond, lengths, generator_rng=_gen(20))
+    assert draw.x0_hat.requires_grad and draw.t.shape == (2,) and not draw.x_t.requires_grad
+    assert torch.equal(draw.fake_t[1, 10:], torch.zeros(6, D)) and torch.equal(draw.x0_hat[1, 10:], torch.zeros(6, D))
     # D step with R1 (step 0 of the lazy interval): finite gradients on every D parameter, none into G
-    d = discriminator_step_losses(gen, disc, schedule, x0, cond, lengths, step=0, generator_rng=_gen(20))
+    d = discriminator_step_losses(disc, draw, cond, lengths, step=0)
     assert d["r1"].item() > 0 and d["total"].item() == pytest.approx(
         (d["real"] + d["fake"] + 15 * d["r1"]).item(), rel=1e-6)
     d["total"].backward()
@@ -564,21 +602,24 @@ def test_one_training_step_of_d_and_g(real) -> None:
     opt_d.step()
     opt_d.zero_grad()
     # a D step without R1 lowers D's loss on the same draw
-    before = discriminator_step_losses(gen, disc, schedule, x0, cond, lengths, step=1, generator_rng=_gen(21))
+    before = discriminator_step_losses(disc, draw, cond, lengths, step=1)
     assert before["r1"].item() == 0.0
     before["total"].backward()
     opt_d.step()
     opt_d.zero_grad()
-    after = discriminator_step_losses(gen, disc, schedule, x0, cond, lengths, step=1, generator_rng=_gen(21))
+    after = discriminator_step_losses(disc, draw, cond, lengths, step=1)
     assert after["total"].item() < before["total"].item()
 
-    # G step: finite gradients on every G parameter (null token included: p_uncond 0.5), loss goes down
+    # G step on the same draw, scored by the updated D: finite gradients on every G parameter (null
+    # token included: p_uncond 0.5), loss goes down on a fresh draw from the same seed
     disc.requires_grad_(False)
-    g_before = generator_step_losses(gen, disc, schedule, x0, cond, lengths, mean, std, generator_rng=_gen(22))
+    g_before = generator_step_losses(disc, draw, x0, cond, lengths, mean, std)
     assert set(g_before) == {"adv", "recon", "pos", "vel", "foot", "geo", "total"}
     assert g_before["total"].item() == pytest.approx((g_before["adv"] + 100 * g_before["geo"]).item(), rel=1e-6)
     g_before["total"].backward()
     assert _grads_ok(gen)
     opt_g.step()
-    g_after = generator_step_losses(gen, disc, schedule, x0, cond, lengths, mean, std, generator_rng=_gen(22))
+    redrawn = draw_fake(gen, schedule, x0, cond, lengths, generator_rng=_gen(20))
+    assert torch.equal(redrawn.x_next, draw.x_next)  # the same draw, through the updated G
+    g_after = generator_step_losses(disc, redrawn, x0, cond, lengths, mean, std)
     assert g_after["total"].item() < g_before["total"].item()
