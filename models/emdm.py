@@ -14,9 +14,8 @@ Contents:
 - :class:`EMDMConfig`, :class:`EMDMGenerator` ``G(x_{t+1}, t, z, c) -> x0_hat`` (Eq. 3) and
   :class:`EMDMDiscriminator` ``D(x_t, x_{t+1}, t, c) -> logit`` (Eqs. 4-5).
 - Losses: :func:`d_adversarial_loss` (Eq. 4), :func:`g_adversarial_loss` (Eq. 6), :func:`r1_penalty`
-  (Eq. 16) with :func:`lazy_r1_scale`, :func:`geometric_losses` (Eqs. 7-12), and one training step:
-  :func:`draw_fake` (the step's draw and G forward), :func:`discriminator_step_losses` /
-  :func:`generator_step_losses` (Eqs. 14-15).
+  (Eq. 16) with :func:`lazy_r1_scale`, :func:`geometric_losses` (Eqs. 7-12), and the two per-step
+  compositions :func:`discriminator_step_losses` / :func:`generator_step_losses` (Eqs. 14-15).
 - Sampling: :func:`guided_x0` (Eq. 13) and :func:`sample_emdm` (Alg. 1), which computes G's
   condition part (:meth:`EMDMGenerator.conditioning`, :func:`guidance_batch`) once, not per step.
 
@@ -67,13 +66,9 @@ Choices where the paper (or its code) is ambiguous or where we depart from it, e
    (the features' contacts group, denormalised and thresholded at 0.5) is on; HumanML3D defines
    that label from the same i -> i+1 displacement. R = 100 for text, 1 for action (Sec. 5.2);
    lambda defaults to 1 (the paper uses 1 for action, 0 for text: set ``geo_lambda``).
-7. One training step uses ONE draw of (t, real pair, condition dropout, z, posterior noise) and ONE
-   G forward (:func:`draw_fake`) for the D update, the adversarial term and the geometric term of
-   the G update, as PyTorch's DCGAN example reuses its fake batch: D learns on the detached fake
-   sample, then G is scored on that same sample by the updated D. DDGAN's and EMDM's code draw
-   afresh for the G update (and draw the adversarial and geometric terms' inputs independently),
-   which costs a second and a third G forward and three more noise tensors of the batch's size;
-   the draws stay independent from step to step, so each update's gradient is unbiased as before.
+7. One generator step uses ONE draw of (t, pair, z) for both the adversarial and the geometric
+   term (the code draws them independently, which costs a second G forward). The fake ``x_t`` of
+   the D step is computed without gradient into G (the code builds that graph and discards it).
 8. Classifier-free guidance (Eq. 13) on x0 with the same z for both passes; the unconditional and
    conditional passes run in one forward on the doubled batch; guidance 1 runs the conditional
    pass only.
@@ -135,6 +130,10 @@ EMDMActivation = Literal["selu", "gelu", "relu", "silu"]
 Lengths = Tensor | Sequence[int]
 Words = tuple[Tensor, Tensor]  # word-token states (B, M, H) and mask (B, M) bool, True on real tokens
 
+_F64 = torch.float64
+_PREFIX_G = 3  # generator tokens before the frames: timestep, condition, z
+_PREFIX_D = 2  # discriminator tokens before the frames: timestep, condition
+
 
 class Conditioning(NamedTuple):
     """G's step-independent inputs (:meth:`EMDMGenerator.conditioning`): the condition token (B, h)
@@ -142,10 +141,6 @@ class Conditioning(NamedTuple):
 
     token: Tensor
     memory: tuple[Tensor, ...]
-
-_F64 = torch.float64
-_PREFIX_G = 3  # generator tokens before the frames: timestep, condition, z
-_PREFIX_D = 2  # discriminator tokens before the frames: timestep, condition
 
 
 # --------------------------------------------------------------------------------------------------
@@ -607,13 +602,10 @@ class EMDMGenerator(nn.Module):
         taps = self.skip.index_select(0, steps)
         if self.skip.ndim == 1:
             return taps[:, None, None] * x_next
-        k, n = self.skip.shape[-1], x_next.shape[1]
-        x = F.pad(torch.where(valid[..., None], x_next, 0.0), (0, 0, k // 2, k // 2))
-        taps = taps.to(x.dtype).transpose(1, 2)  # (B, k, D)
-        out = torch.zeros_like(x_next)
-        for j in range(k):  # one shifted product per tap: no (B, N, D, k) window tensor
-            out.addcmul_(x[:, j:j + n], taps[:, j, None])
-        return out
+        k = self.skip.shape[-1]
+        x = torch.where(valid[..., None], x_next, 0.0)
+        windows = F.pad(x, (0, 0, k // 2, k // 2)).unfold(1, k, 1)  # (B, N, D, k)
+        return torch.einsum("bndk,bdk->bnd", windows, taps.to(x.dtype))
 
 
 class EMDMDiscriminator(nn.Module):
@@ -782,54 +774,29 @@ def geometric_losses(
 # --------------------------------------------------------------------------------------------------
 
 
-class FakeDraw(NamedTuple):
-    """One training step's draw (:func:`draw_fake`): steps t (B,), the real pair ``x_t``, ``x_{t+1}``
-    (B, N, D), G's ``x0_hat`` (with its graph) and the fake ``x_t`` posterior-sampled around it."""
-
-    t: Tensor
-    x_t: Tensor
-    x_next: Tensor
-    x0_hat: Tensor
-    fake_t: Tensor
-
-
-def draw_fake(
+def discriminator_step_losses(
     generator: EMDMGenerator,
+    discriminator: EMDMDiscriminator,
     schedule: EMDMSchedule,
     x0: Tensor,
     cond: Tensor,
     lengths: Lengths,
+    step: int,
     generator_rng: torch.Generator | None = None,
     words: Words | None = None,
-) -> FakeDraw:
-    """The draw both updates of a training step use (docstring item 7) for a batch x0 (B, N, D).
+) -> dict[str, Tensor]:
+    """D's objective on a batch x0 (B, N, D) (Eq. 14 + lazy R1): ``total = real + fake + scale * r1``.
 
-    t ~ U{0..T-1}, a real pair (x_t, x_{t+1}) (:func:`q_sample_pairs`), ``x0_hat = G(x_{t+1}, t, z, c)``
-    with the condition dropped w.p. ``p_uncond`` (gradients flow into G) and the fake ``x_t`` =
-    posterior sample around it. All randomness from ``generator_rng``.
+    t ~ U{0..T-1}, a real pair (x_t, x_{t+1}) (:func:`q_sample_pairs`), a fake ``x_t`` = posterior
+    sample around ``G(x_{t+1}, t, z, c)`` (condition dropped w.p. ``p_uncond``, no gradient into G);
+    ``real = mean softplus(-D(x_t))``, ``fake = mean softplus(D(fake x_t))``; R1 on the real x_t with
+    weight :func:`lazy_r1_scale` (``step``, ``r1_interval``), ``r1`` reported unscaled (0 when skipped).
+    Only D's parameters receive gradients. All randomness from ``generator_rng``.
     """
     cfg = generator.config
     b = x0.shape[0]
     t = sample_timesteps(b, schedule.num_steps, generator_rng, _rng_device(generator_rng, x0.device)).to(x0.device)
     x_t, x_next = q_sample_pairs(schedule, x0, t, generator_rng)
-    drop = condition_dropout(b, cfg.p_uncond, generator_rng, x0.device)
-    x0_hat = generator(x_next, t, _randn((b, cfg.z_dim), x0, generator_rng), cond, lengths, drop_cond=drop,
-                       words=words)
-    fake_t = schedule.posterior_sample(x0_hat, x_next, t, _randn(x0.shape, x0, generator_rng))
-    return FakeDraw(t, x_t, x_next, x0_hat, fake_t)
-
-
-def discriminator_step_losses(
-    discriminator: EMDMDiscriminator, draw: FakeDraw, cond: Tensor, lengths: Lengths, step: int,
-) -> dict[str, Tensor]:
-    """D's objective on a :func:`draw_fake` (Eq. 14 + lazy R1): ``total = real + fake + scale * r1``.
-
-    ``real = mean softplus(-D(x_t))``, ``fake = mean softplus(D(fake x_t))`` (the fake detached: no
-    gradient into G); R1 on the real x_t with weight :func:`lazy_r1_scale` (``step``, ``r1_interval``),
-    ``r1`` reported unscaled (0 when skipped). D always sees the real condition (docstring item 3).
-    """
-    cfg = discriminator.config
-    t, x_t, x_next = draw.t, draw.x_t, draw.x_next
     scale = lazy_r1_scale(step, cfg.r1_interval)
     if scale > 0:
         x_t = x_t.detach().requires_grad_(True)
@@ -839,31 +806,48 @@ def discriminator_step_losses(
     else:
         real_logits = discriminator(x_t, x_next, t, cond, lengths)
         r1 = real_logits.new_zeros(())
-    fake_logits = discriminator(draw.fake_t.detach(), x_next, t, cond, lengths)
+    with torch.no_grad():
+        drop = condition_dropout(b, cfg.p_uncond, generator_rng, x0.device)
+        x0_hat = generator(x_next, t, _randn((b, cfg.z_dim), x0, generator_rng), cond, lengths, drop_cond=drop,
+                           words=words)
+        fake_t = schedule.posterior_sample(x0_hat, x_next, t, _randn(x0.shape, x0, generator_rng))
+    fake_logits = discriminator(fake_t, x_next, t, cond, lengths)
     real, fake = F.softplus(-real_logits).mean(), F.softplus(fake_logits).mean()
     return {"real": real, "fake": fake, "r1": r1, "total": real + fake + scale * r1}
 
 
 def generator_step_losses(
+    generator: EMDMGenerator,
     discriminator: EMDMDiscriminator,
-    draw: FakeDraw,
+    schedule: EMDMSchedule,
     x0: Tensor,
     cond: Tensor,
     lengths: Lengths,
     mean: Tensor | np.ndarray,
     std: Tensor | np.ndarray,
+    generator_rng: torch.Generator | None = None,
+    words: Words | None = None,
 ) -> dict[str, Tensor]:
-    """G's objective on a :func:`draw_fake` of x0 (B, N, D) (Eqs. 12, 15): ``total = adv + R * geo``.
+    """G's objective on a batch x0 (B, N, D) (Eqs. 12, 15): ``total = adv + R * geo``.
 
-    ``adv = mean softplus(-D(fake x_t, x_{t+1}, t, c))`` and :func:`geometric_losses` of x0_hat against
-    x0 (R = ``config.geometric_weight``, lambda = ``geo_lambda``). Returns ``adv`` and the geometric
-    terms (``recon``, ``pos``, ``vel``, ``foot``, ``geo``), ``total``. Gradients also reach D's
-    parameters: freeze D (``requires_grad_(False)``) or zero its gradients before its own step.
+    One draw of t, pair, z and condition dropout (docstring item 7): ``x0_hat = G(x_{t+1}, t, z, c)``,
+    fake ``x_t`` = posterior sample, ``adv = mean softplus(-D(fake x_t, x_{t+1}, t, c))`` and
+    :func:`geometric_losses` of x0_hat against x0 (R = ``config.geometric_weight``, lambda =
+    ``geo_lambda``). Returns ``adv`` and the geometric terms (``recon``, ``pos``, ``vel``, ``foot``,
+    ``geo``), ``total``. Gradients also reach D's parameters: freeze D (``requires_grad_(False)``) or
+    zero its gradients before its own step.
     """
-    cfg = discriminator.config
-    adv = g_adversarial_loss(discriminator(draw.fake_t, draw.x_next, draw.t, cond, lengths))
+    cfg = generator.config
+    b = x0.shape[0]
+    t = sample_timesteps(b, schedule.num_steps, generator_rng, _rng_device(generator_rng, x0.device)).to(x0.device)
+    _, x_next = q_sample_pairs(schedule, x0, t, generator_rng)
+    drop = condition_dropout(b, cfg.p_uncond, generator_rng, x0.device)
+    x0_hat = generator(x_next, t, _randn((b, cfg.z_dim), x0, generator_rng), cond, lengths, drop_cond=drop,
+                       words=words)
+    fake_t = schedule.posterior_sample(x0_hat, x_next, t, _randn(x0.shape, x0, generator_rng))
+    adv = g_adversarial_loss(discriminator(fake_t, x_next, t, cond, lengths))
     geo = geometric_losses(
-        draw.x0_hat, x0, lengths, mean, std, cfg.joints_num, weight=cfg.geometric_weight, lam=cfg.geo_lambda
+        x0_hat, x0, lengths, mean, std, cfg.joints_num, weight=cfg.geometric_weight, lam=cfg.geo_lambda
     )
     return {"adv": adv, **{k: v for k, v in geo.items() if k != "total"}, "total": adv + geo["total"]}
 

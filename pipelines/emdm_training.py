@@ -18,7 +18,6 @@ from models.emdm import (
     EMDMDiscriminator,
     EMDMGenerator,
     discriminator_step_losses,
-    draw_fake,
     generator_step_losses,
     lag_moments,
     lazy_r1_scale,
@@ -73,8 +72,7 @@ def build(config: dict) -> Components:
 
 
 def step(batch: dict, ctx: StepContext) -> dict[str, torch.Tensor]:
-    """One draw and G forward (:func:`models.emdm.draw_fake`), one D update on it (with lazy R1 when
-    ``ctx.step`` is due), then one G update on the same draw with D frozen."""
+    """One D update (with lazy R1 when ``ctx.step`` is due), then one G update with D frozen."""
     if ctx.world_size > 1:
         raise NotImplementedError("train_emdm runs on one worker (ray.num_workers: 1): its D step is not DDP-safe")
     generator, discriminator = ctx.models["generator"], ctx.models["discriminator"]
@@ -83,13 +81,13 @@ def step(batch: dict, ctx: StepContext) -> dict[str, torch.Tensor]:
     cond = batch["label"] if generator.config.condition == "action" else batch["text"]
     words = (batch["tokens"], batch["token_mask"]) if generator.config.word_tokens else None
 
-    draw = draw_fake(generator, schedule, x0, cond, lengths, words=words)
-    d = discriminator_step_losses(discriminator, draw, cond, lengths, ctx.step)
+    d = discriminator_step_losses(generator, discriminator, schedule, x0, cond, lengths, ctx.step, words=words)
     ctx.update(d["total"], "d")
 
     discriminator.requires_grad_(False)  # G's loss needs dD/dx only; D's gradients would be thrown away
     try:
-        g = generator_step_losses(discriminator, draw, x0, cond, lengths, ctx.frozen["mean"], ctx.frozen["std"])
+        g = generator_step_losses(generator, discriminator, schedule, x0, cond, lengths, ctx.frozen["mean"],
+                                  ctx.frozen["std"], words=words)
         ctx.update(g["total"], "g")
     finally:
         discriminator.requires_grad_(True)

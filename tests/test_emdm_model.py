@@ -19,7 +19,6 @@ from models.emdm import (
     condition_dropout,
     d_adversarial_loss,
     discriminator_step_losses,
-    draw_fake,
     from_patches,
     g_adversarial_loss,
     generator_step_losses,
@@ -589,12 +588,8 @@ def test_one_training_step_of_d_and_g(real) -> None:
     opt_d = torch.optim.Adam(disc.parameters(), lr=1e-4, betas=(0.5, 0.9))
     opt_g = torch.optim.Adam(gen.parameters(), lr=1e-4, betas=(0.5, 0.9))
 
-    # the draw: a real pair and a fake x_t at the same steps, zero at padding, G's graph kept
-    draw = draw_fake(gen, schedule, x0, cond, lengths, generator_rng=_gen(20))
-    assert draw.x0_hat.requires_grad and draw.t.shape == (2,) and not draw.x_t.requires_grad
-    assert torch.equal(draw.fake_t[1, 10:], torch.zeros(6, D)) and torch.equal(draw.x0_hat[1, 10:], torch.zeros(6, D))
     # D step with R1 (step 0 of the lazy interval): finite gradients on every D parameter, none into G
-    d = discriminator_step_losses(disc, draw, cond, lengths, step=0)
+    d = discriminator_step_losses(gen, disc, schedule, x0, cond, lengths, step=0, generator_rng=_gen(20))
     assert d["r1"].item() > 0 and d["total"].item() == pytest.approx(
         (d["real"] + d["fake"] + 15 * d["r1"]).item(), rel=1e-6)
     d["total"].backward()
@@ -602,24 +597,21 @@ def test_one_training_step_of_d_and_g(real) -> None:
     opt_d.step()
     opt_d.zero_grad()
     # a D step without R1 lowers D's loss on the same draw
-    before = discriminator_step_losses(disc, draw, cond, lengths, step=1)
+    before = discriminator_step_losses(gen, disc, schedule, x0, cond, lengths, step=1, generator_rng=_gen(21))
     assert before["r1"].item() == 0.0
     before["total"].backward()
     opt_d.step()
     opt_d.zero_grad()
-    after = discriminator_step_losses(disc, draw, cond, lengths, step=1)
+    after = discriminator_step_losses(gen, disc, schedule, x0, cond, lengths, step=1, generator_rng=_gen(21))
     assert after["total"].item() < before["total"].item()
 
-    # G step on the same draw, scored by the updated D: finite gradients on every G parameter (null
-    # token included: p_uncond 0.5), loss goes down on a fresh draw from the same seed
+    # G step: finite gradients on every G parameter (null token included: p_uncond 0.5), loss goes down
     disc.requires_grad_(False)
-    g_before = generator_step_losses(disc, draw, x0, cond, lengths, mean, std)
+    g_before = generator_step_losses(gen, disc, schedule, x0, cond, lengths, mean, std, generator_rng=_gen(22))
     assert set(g_before) == {"adv", "recon", "pos", "vel", "foot", "geo", "total"}
     assert g_before["total"].item() == pytest.approx((g_before["adv"] + 100 * g_before["geo"]).item(), rel=1e-6)
     g_before["total"].backward()
     assert _grads_ok(gen)
     opt_g.step()
-    redrawn = draw_fake(gen, schedule, x0, cond, lengths, generator_rng=_gen(20))
-    assert torch.equal(redrawn.x_next, draw.x_next)  # the same draw, through the updated G
-    g_after = generator_step_losses(disc, redrawn, x0, cond, lengths, mean, std)
+    g_after = generator_step_losses(gen, disc, schedule, x0, cond, lengths, mean, std, generator_rng=_gen(22))
     assert g_after["total"].item() < g_before["total"].item()
