@@ -7,10 +7,12 @@ under ``$ARTIFACTS`` (symlinked); with the name ``existing`` it skips training a
 ``$ARTIFACTS/train_controlnet``. Then, on the first ``$ITEMS`` test motions (first caption, full
 length, seed 0, ``sample.motionlcm_guidance``), pelvis hints at ``$DENSITY``: the control errors
 of MotionLCM-1 without control, of the ControlNet, and of the noise refinement at several (steps,
-lr) settings, plus batch-1 seconds per motion of the ControlNet with 0/10/20/30 refinement
-steps (``REFINE=0`` skips the refinement rows and timings). Each row also gets the T2M evaluator's
-FID against the same items' real motions, R@3 (groups of 32) and Diversity (``ITEMS=all`` for the
-whole test split). Prints one JSON line per measurement. Used for docs/controlnet.md.
+lr) settings (``REFINE_SETTINGS``, default "5:0.1 10:0.1 ..."), plus batch-1 seconds per motion of
+the ControlNet with 0/10/20/30 refinement steps (``REFINE=0`` skips the refinement rows and timings).
+Each row also gets the T2M evaluator's FID against the same items' real motions, R@3 (groups
+of 32), Diversity (``ITEMS=all`` for the whole test split) and the physical metrics; ``PROJECT=1``
+adds each row again after the root projection (:mod:`data.root_projection`). Prints one JSON line
+per measurement. Used for docs/controlnet.md.
 """
 import json
 import os
@@ -25,6 +27,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from data.control import evaluation_mask  # noqa: E402
 from data.features import recover_from_ric  # noqa: E402
 from data.motion_dataset import pad_tokens  # noqa: E402
+from data.root_projection import project_root  # noqa: E402
+from data.skeleton import get_skeleton  # noqa: E402
 from models import metrics as M  # noqa: E402
 from models.controlnet import ControlledStudent, refine_noise  # noqa: E402
 from models.motionlcm import motionlcm_latents  # noqa: E402
@@ -36,7 +40,8 @@ from pipelines.mld_family import load_mld, load_motionlcm, load_vae  # noqa: E40
 from pipelines.stage import train  # noqa: E402
 from stages import train_controlnet  # noqa: E402
 
-REFINE = [(5, 0.1), (10, 0.1), (20, 0.1), (30, 0.1), (10, 0.05), (10, 0.3)]
+REFINE = [(int(steps), float(lr)) for steps, lr in (pair.split(":") for pair in
+          os.environ.get("REFINE_SETTINGS", "5:0.1 10:0.1 20:0.1 30:0.1 10:0.05 10:0.3").split())]
 
 torch.set_num_threads(2)
 name, overrides = sys.argv[1], sys.argv[2:]
@@ -73,6 +78,7 @@ w = params["sample"]["motionlcm_guidance"] - 1.0
 mean, std = torch.from_numpy(store.mean), torch.from_numpy(store.std)
 scale = student.config.latent_scale
 embedder = load_evaluator(source / "train_evaluator")
+skeleton = get_skeleton(params["data"]["skeleton"])
 valid = np.arange(raw.shape[1])[None, :] < lengths.numpy()[:, None]
 text_emb = embedder.texts([item.tokens[0] for item in items])
 real_stats = M.gaussian_statistics(embedder.motions(raw, lengths.numpy()))
@@ -89,16 +95,25 @@ def latents(model: torch.nn.Module, index: slice = slice(None), x_T: torch.Tenso
                              text_mask=token_mask[index], x_T=noise(index) if x_T is None else x_T)
 
 
-def errors(z: torch.Tensor) -> dict[str, float]:
+def errors(z: torch.Tensor, project: bool = False) -> dict[str, float]:
     with torch.no_grad():
         features = vae.decode_by_length(z * scale, lengths).numpy()
     generated = np.where(valid[..., None], features * store.std + store.mean, 0.0).astype(np.float32)
+    if project:
+        generated = project_root(generated, target, mask, lengths.numpy(), store.joints_num)
     joints = recover_from_ric(generated, store.joints_num)
     motion_emb = embedder.motions(generated, lengths.numpy())
     quality = {"FID": M.frechet_distance(*M.gaussian_statistics(motion_emb), *real_stats),
                "R@3": float(M.r_precision(text_emb, motion_emb, 32, top_k=3)[2]),
                "Diversity": M.diversity(motion_emb, 300, np.random.default_rng(0))}
-    return {k: round(v, 3) for k, v in (M.control_errors(joints, target, mask) | quality).items()}
+    physics = M.physical_metrics([joints[k, :n] for k, n in enumerate(lengths.numpy())], skeleton)
+    return {k: round(v, 3) for k, v in (M.control_errors(joints, target, mask) | quality | physics).items()}
+
+
+def report(row: str, z: torch.Tensor) -> None:
+    print(json.dumps({"name": name, "row": row, **errors(z)}), flush=True)
+    if os.environ.get("PROJECT") == "1":
+        print(json.dumps({"name": name, "row": row + " +project", **errors(z, project=True)}), flush=True)
 
 
 def refine(model: torch.nn.Module, steps: int, lr: float, index: slice = slice(None)) -> torch.Tensor:
@@ -106,14 +121,13 @@ def refine(model: torch.nn.Module, steps: int, lr: float, index: slice = slice(N
                         lengths[index], mean=mean, std=std, latent_scale=scale, steps=steps, lr=lr)
 
 
-print(json.dumps({"name": name, "row": "uncontrolled", **errors(latents(student))}))
+report("uncontrolled", latents(student))
 controlled = ControlledStudent(student, controlnet, hint, hint_mask)
-z0 = latents(controlled)
-print(json.dumps({"name": name, "row": "controlnet", **errors(z0)}))
+report("controlnet", latents(controlled))
 if os.environ.get("REFINE", "1") == "0":
     sys.exit(0)
 for steps, lr in REFINE:
-    print(json.dumps({"name": name, "row": f"refine steps={steps} lr={lr}", **errors(refine(controlled, steps, lr))}))
+    report(f"refine steps={steps} lr={lr}", refine(controlled, steps, lr))
 
 first = int(lengths[0])
 single = ControlledStudent(student, controlnet, hint[:1, :first], hint_mask[:1, :first])

@@ -5,7 +5,8 @@ Rows (all one-step MotionLCM, the configured guidance, pelvis hints from the tes
 - ``MotionLCM-Control``: every frame controlled (100 %);
 - ``MotionLCM-Control-5f``: 5 random frames;
 - ``MotionLCM-Control+refine``: 100 %, with test-time noise optimisation
-  (:func:`models.controlnet.refine_noise`, ``sample.control_refine_*``);
+  (:func:`models.controlnet.refine_noise`, ``sample.control_refine_steps`` and ``_lr``), then the root
+  projection onto the hint (:mod:`data.root_projection`) when ``sample.control_refine_project``;
 - ``MotionLCM-1-uncontrolled``: MotionLCM-1 without a ControlNet, scored against the same 100 % hints
   (the control error of a model that ignores them).
 """
@@ -13,11 +14,12 @@ Rows (all one-step MotionLCM, the configured guidance, pelvis hints from the tes
 from __future__ import annotations
 
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import torch
 
+from data.root_projection import project_root
 from models.controlnet import ControlConfig, ControlledStudent, MotionControlNet, refine_noise
 from models.diffusion import NoiseSchedule
 from models.generator import ControlSpec, Hint, TextBatch
@@ -48,7 +50,7 @@ class ControlNetGenerator:
 
     def __init__(self, name: str, student: MLDDenoiser, controlnet: MotionControlNet, vae: MotionVAE,
                  schedule: NoiseSchedule, guidance: float, control: ControlSpec, mean: np.ndarray, std: np.ndarray,
-                 refine: dict[str, float] | None = None) -> None:
+                 refine: dict[str, Any] | None = None) -> None:
         self.name, self.student, self.controlnet, self.vae, self.schedule = name, student, controlnet, vae, schedule
         self.w, self.control, self.refine = guidance - 1.0, control, refine
         self.mean, self.std = torch.from_numpy(mean.astype(np.float32)), torch.from_numpy(std.astype(np.float32))
@@ -74,7 +76,12 @@ class ControlNetGenerator:
             denoise, self.vae, x_T, joints, mask, lengths_t, mean=self.mean, std=self.std,
             latent_scale=cfg.latent_scale, steps=int(self.refine["steps"]), lr=self.refine["lr"])
         with torch.no_grad():
-            return self.vae.eval().decode_by_length(z0 * cfg.latent_scale, lengths_t).numpy()
+            out = self.vae.eval().decode_by_length(z0 * cfg.latent_scale, lengths_t).numpy()
+        if self.refine is None or not self.refine["project"]:
+            return out
+        mean, std = self.mean.numpy(), self.std.numpy()
+        projected = project_root(out * std + mean, hint.joints, hint.mask, np.asarray(lengths), joints_num)
+        return ((projected - mean) / std).astype(np.float32)
 
 
 class Uncontrolled:
@@ -88,9 +95,10 @@ class Uncontrolled:
         return self.generator.sample(text, lengths, seed)
 
 
-def _refine_settings(ctx: EvalContext) -> dict[str, float]:
+def _refine_settings(ctx: EvalContext) -> dict[str, Any]:
     sample = ctx.params["sample"]
-    return {"steps": sample["control_refine_steps"], "lr": sample["control_refine_lr"]}
+    return {"steps": sample["control_refine_steps"], "lr": sample["control_refine_lr"],
+            "project": sample["control_refine_project"]}
 
 
 def _controlnet(ctx: EvalContext, name: str, density: str, refine: bool = False,

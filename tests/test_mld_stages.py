@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from data.trajectories import make_trajectory
 from models.generator import Generator, TextBatch
 from pipelines.checkpoint import load_final_model
 from pipelines.latent_cache import collate_words, latent_dataset
@@ -181,6 +182,8 @@ def test_evaluation_stages_and_report(trained):
     for row in rows["motionlcm-control"].values():
         assert 0 <= row["loc_err_20cm"] <= row["traj_err_20cm"] <= 1 and row["avg_err_m"] > 0
         assert row["loc_err_50cm"] <= row["loc_err_20cm"]
+    control = rows["motionlcm-control"]  # the projection leaves only the pelvis height's error
+    assert control["MotionLCM-Control+refine"]["avg_err_m"] < 0.5 * control["MotionLCM-Control"]["avg_err_m"]
     # the uncontrolled reference answers the same captions with the same seeds as MotionLCM-1
     assert rows["motionlcm-control"]["MotionLCM-1-uncontrolled"]["FID"] == rows["motionlcm"]["MotionLCM-1"]["FID"]
     assert list(rows["emdm"]) == ["EMDM-10"] and list(rows["emdm-action"]) == ["Real-action", "EMDM-action"]
@@ -289,6 +292,11 @@ def test_train_controlnet_resumes_exactly_and_follows_the_cli_trajectory(trained
     [gif] = generate.generate(params, "motionlcm-control", ["a person walks"], [40], tmp_path / "c.gif",
                               trajectory="circle", refine=True)
     assert gif.stat().st_size > 1000
+    # --refine ends in the root projection: the pelvis follows the circle horizontally on every frame
+    [npy] = generate.generate(params, "motionlcm-control", ["a person walks"], [40], tmp_path / "r.npy",
+                              trajectory="circle", refine=True)
+    circle = make_trajectory("circle", 40)
+    np.testing.assert_allclose(np.load(npy)[:, 0, [0, 2]], circle[:, [0, 2]], atol=1e-3)
     path = tmp_path / "path.npy"
     np.save(path, np.zeros((30, 3), np.float32))
     with pytest.raises(ValueError, match="length mismatch"):
