@@ -63,6 +63,7 @@ import pyarrow.parquet as pq
 
 from data.bvh import write_bvh
 from data.control import CONTROL_JOINTS
+from data.physics import foot_skating_ratio
 from data.render import render_animation, render_strip
 from data.skeleton import get_skeleton
 from data.trajectories import SHAPES, load_trajectory, make_trajectory
@@ -414,7 +415,9 @@ def run_request(params: dict[str, Any], request: Request) -> list[Path]:
     for joints, path, prompt in zip(all_joints, request.paths, request.prompts, strict=True):
         if target is not None:
             error = np.linalg.norm(joints[:, CONTROL_JOINTS["pelvis"]] - target[: len(joints)], axis=-1).mean()
-            print(f"{path.name}: pelvis {error:.3f} m from the trajectory on average")
+            skating = foot_skating_ratio(joints, get_skeleton(skeleton))
+            print(f"{path.name}: pelvis {error:.3f} m from the trajectory on average; feet skating in "
+                  f"{skating:.0%} of frame pairs")
         jobs.append((joints, path, prompt.text, skeleton, target))
     return write_all(jobs)
 
