@@ -1,4 +1,4 @@
-"""Root projection: slide a generated motion horizontally, frame by frame, onto a trajectory hint.
+"""Root projection: steer a generated motion's root, frame by frame, onto a trajectory hint.
 
 A test-time step after any sampler (used by ``MotionLCM-Control+refine``, ``docs/controlnet.md``).
 For each motion of length L with controlled frames C (a hint as in :mod:`data.control`):
@@ -8,21 +8,26 @@ For each motion of length L with controlled frames C (a hint as in :mod:`data.co
 2. ``delta`` is linearly interpolated over all L frames between controlled frames and held after the
    last (per axis, ``np.interp``). Frame 0's horizontal root position is the representation's
    origin (``recover_root_rot_pos`` starts the integration at 0), so ``delta_0 = 0`` is an
-   interpolation anchor (it replaces a controlled frame 0's offset);
-3. the body slides by ``delta_t`` at every frame: the root's local linear velocity ``f[t, 1:3]``
-   gets the change of displacement ``Delta_t = delta_{t+1} - delta_t`` rotated into the heading of
-   frame t + 1 (the inverse of the integration in :func:`data.features.recover_root_rot_pos`), and
-   every joint's local velocity (the ``vel`` group, heading of frame t, as extraction's step 10)
-   gets the same Delta_t. Headings, heights, joint positions relative to the root (RIC), rotations
-   and contacts are unchanged.
+   interpolation anchor (it replaces a controlled frame 0's offset). The target root path is
+   ``root_t + delta_t``;
+3. :func:`steer` puts the root on that path: each frame's heading turns by the angle from the
+   motion's own horizontal root step to the target's step (measured where both move at least
+   :data:`MIN_STEP_M` per frame, below which a step's direction is noise; interpolated between
+   those frames, unwrapped and Gaussian-smoothed over :data:`TURN_SMOOTH_FRAMES`; frame 0
+   keeps its heading, which the representation also pins), and the root's local linear velocity
+   becomes the target step in the new heading (the inverse of the integration in
+   :func:`data.features.recover_root_rot_pos`), so the root follows the path exactly. A motion that
+   walks straight on a curved path turns with it and keeps stepping forward; one that stands is slid.
+   The root's yaw velocity changes with the turn, every joint's local velocity (the ``vel`` group)
+   is recomputed from the new joints as extraction's step 10 does; heights, joint positions relative
+   to the root in its own frame (RIC), rotations and contacts are unchanged.
 
-So the recovered joints of the result equal the input's plus ``delta_t`` (to float precision): a
-pelvis controlled on every frame lands on its hint horizontally (frame 0 excepted), and the posture
-is untouched. Heights are left alone on purpose: a vertical shift of the whole body pushes the feet
-through the floor or lifts them off it (measured in ``docs/controlnet.md``); the height error
-stays, and the sampler (the ControlNet, the noise refinement) must get it right. What the
-projection cannot fix it makes visible: a slide the legs do not step with shows as foot skating,
-which the evaluation's physical columns measure.
+So a pelvis controlled on every frame lands on its hint horizontally (frame 0 excepted), and the
+posture is untouched. Heights are left alone on purpose: a vertical shift of the whole body pushes
+the feet through the floor or lifts them off it (measured in ``docs/controlnet.md``); the height
+error stays, and the sampler (the ControlNet, the noise refinement) must get it right. What the
+projection cannot fix it makes visible: a speed the legs do not step at, or a turn they do not
+step through, shows as foot skating, which the evaluation's physical columns measure.
 """
 
 from __future__ import annotations
@@ -32,9 +37,14 @@ import numpy as np
 from data.features import feature_groups, recover_from_ric, recover_root_rot_pos
 from data.rotations import qrot
 
+#: Root steps shorter than this (metres per frame; 0.1 m/s at 20 fps) give no direction to turn by.
+MIN_STEP_M = 0.005
+#: Standard deviation (frames) of the Gaussian that smooths the turn angles.
+TURN_SMOOTH_FRAMES = 2.0
+
 
 def root_offsets(joints: np.ndarray, hint: np.ndarray, mask: np.ndarray) -> np.ndarray:
-    """The per-frame horizontal slide (L, 3), y = 0, of steps 1-2 (module docstring) for one motion.
+    """The per-frame horizontal offset (L, 3), y = 0, of steps 1-2 (module docstring) for one motion.
 
     ``joints`` and ``hint`` (L, J, 3), ``mask`` (L, J) bool. Zero when no frame after 0 is controlled.
     """
@@ -51,16 +61,53 @@ def root_offsets(joints: np.ndarray, hint: np.ndarray, mask: np.ndarray) -> np.n
     return delta
 
 
-def translate(features: np.ndarray, delta: np.ndarray, joints_num: int) -> np.ndarray:
-    """Features (L, D) of one motion (denormalised) slid by ``delta`` (L, 3), ``delta[0] == 0`` and
-    ``delta[:, 1] == 0`` (step 3, module docstring) -> a new (L, D) float64 array."""
-    if np.any(delta[0] != 0) or np.any(delta[:, 1] != 0):
-        raise ValueError("translate: the slide must be horizontal (delta[:, 1] == 0) and 0 at frame 0")
+def _yaw_quats(angle: np.ndarray) -> np.ndarray:
+    """Heading quaternions ``(cos a, 0, sin a, 0)`` (..., 4) of the features' yaw angles ``a`` (...)."""
+    zero = np.zeros_like(angle)
+    return np.stack([np.cos(angle), zero, np.sin(angle), zero], -1)
+
+
+def _turn_angles(own: np.ndarray, target: np.ndarray, min_step: float, smooth: float) -> np.ndarray:
+    """Per-frame yaw (radians, about +y) that turns the motion's own horizontal steps ``own`` (L-1, 3)
+    onto the target's ``target`` (L-1, 3): measured where both move at least ``min_step`` per frame,
+    interpolated between those frames, unwrapped, Gaussian-smoothed over ``smooth`` frames; 0 when
+    the motion never moves."""
+    moving = np.flatnonzero((np.hypot(own[:, 0], own[:, 2]) >= min_step)
+                            & (np.hypot(target[:, 0], target[:, 2]) >= min_step))
+    if moving.size == 0:
+        return np.zeros(len(own))
+    angle = np.arctan2(own[:, 2] * target[:, 0] - own[:, 0] * target[:, 2],
+                       own[:, 0] * target[:, 0] + own[:, 2] * target[:, 2])
+    angle = np.interp(np.arange(len(own)), moving, np.unwrap(angle[moving]))
+    if smooth > 0:
+        radius = int(3 * smooth)
+        kernel = np.exp(-0.5 * (np.arange(-radius, radius + 1) / smooth) ** 2)
+        padded = np.pad(angle, radius, mode="edge")
+        angle = np.convolve(padded, kernel / kernel.sum(), mode="valid")
+    return angle
+
+
+def steer(features: np.ndarray, target: np.ndarray, joints_num: int) -> np.ndarray:
+    """Features (L, D) of one motion (denormalised) whose root follows ``target`` (L, 3) horizontally
+    (step 3, module docstring) -> a new (L, D) float64 array. ``target[0]`` must be the origin in x, z
+    (where every motion starts); its y is ignored."""
+    if np.any(target[0, [0, 2]] != 0):
+        raise ValueError("steer: the target path must start at the origin in x and z")
     out = np.array(features, dtype=np.float64)
-    heading, _ = recover_root_rot_pos(out)
-    step = delta[1:] - delta[:-1]  # (L-1, 3): the change of displacement from t to t+1
-    out[:-1, 1:3] += qrot(heading[1:], step)[:, [0, 2]]
-    out[:-1, feature_groups(joints_num)["vel"]] += np.tile(qrot(heading[:-1], step), joints_num)
+    length = len(out)
+    if length < 2:
+        return out
+    yaw = np.concatenate([[0.0], np.cumsum(out[:-1, 0])])  # a_t; the heading quaternion turns by 2 a_t
+    _, root = recover_root_rot_pos(out)
+    own, wanted = np.diff(root, axis=0), np.diff(target, axis=0) * np.array([1.0, 0.0, 1.0])
+    # turning the heading by beta turns the world step by beta too: a_{t+1} += -beta_t / 2
+    new_yaw = yaw + np.concatenate([[0.0], -0.5 * _turn_angles(own, wanted, MIN_STEP_M, TURN_SMOOTH_FRAMES)])
+    quats = _yaw_quats(new_yaw)
+    out[:-1, 0] = np.diff(new_yaw)
+    out[:-1, 1:3] = qrot(quats[1:], wanted)[:, [0, 2]]  # world step -> local, as recovery inverts it
+    joints = recover_from_ric(out, joints_num)
+    vel = qrot(quats[:-1, None], joints[1:] - joints[:-1])  # extraction's step 10 on the new joints
+    out[:-1, feature_groups(joints_num)["vel"]] = vel.reshape(length - 1, -1)
     return out
 
 
@@ -76,8 +123,10 @@ def project_root(features: np.ndarray, hint: np.ndarray, mask: np.ndarray, lengt
                          f"{features.shape} with {joints_num} joints")
     out = np.array(features, dtype=np.float32)
     for b, length in enumerate(np.asarray(lengths, dtype=int)):
+        if not mask[b, 1:length].any():
+            continue  # nothing to follow after frame 0: the motion as it is
         motion = features[b, :length].astype(np.float64)
         joints = recover_from_ric(motion, joints_num)
         delta = root_offsets(joints, hint[b, :length].astype(np.float64), mask[b, :length])
-        out[b, :length] = translate(motion, delta, joints_num)
+        out[b, :length] = steer(motion, joints[:, 0] + delta, joints_num)
     return out
