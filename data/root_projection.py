@@ -33,6 +33,7 @@ step through, shows as foot skating, which the evaluation's physical columns mea
 from __future__ import annotations
 
 import numpy as np
+from scipy.ndimage import gaussian_filter1d
 
 from data.features import feature_groups, recover_from_ric, recover_root_rot_pos
 from data.rotations import qrot
@@ -61,12 +62,6 @@ def root_offsets(joints: np.ndarray, hint: np.ndarray, mask: np.ndarray) -> np.n
     return delta
 
 
-def _yaw_quats(angle: np.ndarray) -> np.ndarray:
-    """Heading quaternions ``(cos a, 0, sin a, 0)`` (..., 4) of the features' yaw angles ``a`` (...)."""
-    zero = np.zeros_like(angle)
-    return np.stack([np.cos(angle), zero, np.sin(angle), zero], -1)
-
-
 def _turn_angles(own: np.ndarray, target: np.ndarray, min_step: float, smooth: float) -> np.ndarray:
     """Per-frame yaw (radians, about +y) that turns the motion's own horizontal steps ``own`` (L-1, 3)
     onto the target's ``target`` (L-1, 3): measured where both move at least ``min_step`` per frame,
@@ -79,12 +74,7 @@ def _turn_angles(own: np.ndarray, target: np.ndarray, min_step: float, smooth: f
     angle = np.arctan2(own[:, 2] * target[:, 0] - own[:, 0] * target[:, 2],
                        own[:, 0] * target[:, 0] + own[:, 2] * target[:, 2])
     angle = np.interp(np.arange(len(own)), moving, np.unwrap(angle[moving]))
-    if smooth > 0:
-        radius = int(3 * smooth)
-        kernel = np.exp(-0.5 * (np.arange(-radius, radius + 1) / smooth) ** 2)
-        padded = np.pad(angle, radius, mode="edge")
-        angle = np.convolve(padded, kernel / kernel.sum(), mode="valid")
-    return angle
+    return gaussian_filter1d(angle, smooth, mode="nearest", truncate=3.0)
 
 
 def steer(features: np.ndarray, target: np.ndarray, joints_num: int) -> np.ndarray:
@@ -102,8 +92,8 @@ def steer(features: np.ndarray, target: np.ndarray, joints_num: int) -> np.ndarr
     own, wanted = np.diff(root, axis=0), np.diff(target, axis=0) * np.array([1.0, 0.0, 1.0])
     # turning the heading by beta turns the world step by beta too: a_{t+1} += -beta_t / 2
     new_yaw = yaw + np.concatenate([[0.0], -0.5 * _turn_angles(own, wanted, MIN_STEP_M, TURN_SMOOTH_FRAMES)])
-    quats = _yaw_quats(new_yaw)
     out[:-1, 0] = np.diff(new_yaw)
+    quats, _ = recover_root_rot_pos(out)  # the new headings, integrated as recovery does
     out[:-1, 1:3] = qrot(quats[1:], wanted)[:, [0, 2]]  # world step -> local, as recovery inverts it
     joints = recover_from_ric(out, joints_num)
     vel = qrot(quats[:-1, None], joints[1:] - joints[:-1])  # extraction's step 10 on the new joints
