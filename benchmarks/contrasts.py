@@ -65,25 +65,20 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from benchmarks.prompt_probe import (  # noqa: E402
-    HEAD,
-    L_HIP,
-    LEFT_FOOT,
+from benchmarks.prompt_probe import eval_context  # noqa: E402
+from data.joint_measures import (  # noqa: E402
+    FPS,
     PELVIS,
-    R_HIP,
-    R_WRIST,
-    RIGHT_FOOT,
-    eval_context,
+    foot_rise,
+    heading,
+    jump_count,
+    wrist_up,
 )
 from pipelines.registry import GenerateOptions, family  # noqa: E402
 
-L_SHOULDER, R_SHOULDER, L_WRIST = 16, 17, 20
-FPS = 20
 KICK_RISE = 0.20  # metres
 WAVE_FRAMES = 10
 MIN_PATH, MIN_TURN = 0.5, 90.0  # metres, degrees
-AIR_MARGIN, AIR_FRAMES = 0.05, 2  # metres, frames
-SMOOTH = 9  # frames (0.45 s)
 JITTER_MAX = 0.1  # metres per frame squared
 
 #: model -> generate options: the family's generator as ``stages.generate --model`` builds it,
@@ -97,18 +92,8 @@ MODELS = {"mld": GenerateOptions(), "motionlcm": GenerateOptions(), "emdm": Gene
 # --------------------------------------------------------------------------------------------------
 
 
-def foot_rise(joints: np.ndarray) -> tuple[float, float]:
-    """(left, right): each foot's highest lift of its ankle or toe above that joint's standing height."""
-    def rise(idx: tuple[int, int]) -> float:
-        y = joints[:, idx, 1]
-        return float((y - np.percentile(y, 10, axis=0)).max())
-    return rise(LEFT_FOOT), rise(RIGHT_FOOT)
 
 
-def wrist_up(joints: np.ndarray) -> tuple[int, int]:
-    """(left, right): frames with each wrist above the head joint."""
-    head = joints[:, HEAD, 1]
-    return int((joints[:, L_WRIST, 1] > head).sum()), int((joints[:, R_WRIST, 1] > head).sum())
 
 
 def _centroid(weights: np.ndarray) -> float:
@@ -119,13 +104,6 @@ def _centroid(weights: np.ndarray) -> float:
     return float(((np.arange(len(weights)) + 0.5) * weights).sum() / total / FPS)
 
 
-def heading(joints: np.ndarray) -> np.ndarray:
-    """(T,) unwrapped heading (radians) from the hip plus shoulder axes, smoothed over ``SMOOTH`` frames."""
-    axis = joints[:, L_HIP] - joints[:, R_HIP] + joints[:, L_SHOULDER] - joints[:, R_SHOULDER]
-    angle = np.unwrap(np.arctan2(axis[:, 0], axis[:, 2]))
-    pad = SMOOTH // 2
-    padded = np.concatenate([np.full(pad, angle[0]), angle, np.full(pad, angle[-1])])
-    return np.convolve(padded, np.ones(SMOOTH) / SMOOTH, mode="valid")
 
 
 def order(joints: np.ndarray) -> dict[str, float]:
@@ -137,26 +115,8 @@ def order(joints: np.ndarray) -> dict[str, float]:
             "turn": float(np.degrees(abs(h[-1] - h[0])))}
 
 
-def airborne_runs(joints: np.ndarray) -> list[tuple[int, int]]:
-    """(start, end) frames of the airborne episodes: both feet above the floor + ``AIR_MARGIN`` for
-    ``AIR_FRAMES`` frames or more, runs split by one grounded frame merged."""
-    left, right = joints[:, LEFT_FOOT, 1].min(1), joints[:, RIGHT_FOOT, 1].min(1)
-    floor = np.percentile(np.minimum(left, right), 10)
-    air = (left > floor + AIR_MARGIN) & (right > floor + AIR_MARGIN)
-    edges = np.diff(np.concatenate([[0], air.astype(int), [0]]))
-    runs = list(zip(np.flatnonzero(edges == 1), np.flatnonzero(edges == -1), strict=True))
-    merged: list[list[int]] = []
-    for start, end in runs:
-        if merged and start - merged[-1][1] <= 1:
-            merged[-1][1] = end
-        else:
-            merged.append([int(start), int(end)])
-    return [(s, e) for s, e in merged if e - s >= AIR_FRAMES]
 
 
-def jump_count(joints: np.ndarray) -> int:
-    """Airborne episodes (:func:`airborne_runs`)."""
-    return len(airborne_runs(joints))
 
 
 def jitter(joints: np.ndarray) -> float:

@@ -22,14 +22,12 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from data.joint_measures import HEAD, L_HIP, LEFT_FOOT, PELVIS, R_HIP, R_WRIST, RIGHT_FOOT  # noqa: E402
 from data.render import render_strip  # noqa: E402
 from data.skeleton import HUMANML3D  # noqa: E402
 from pipelines.cli import artifacts_dir, repo_path  # noqa: E402
 from pipelines.config import load_params  # noqa: E402
 from pipelines.registry import EvalContext, GenerateOptions, family  # noqa: E402
-
-PELVIS, L_HIP, R_HIP, HEAD, R_WRIST = 0, 1, 2, 15, 21
-LEFT_FOOT, RIGHT_FOOT = (7, 10), (8, 11)
 
 
 def measures(joints: np.ndarray) -> dict[str, float]:

@@ -63,6 +63,7 @@ import torch
 
 from data.control import evaluation_mask
 from data.features import recover_from_ric
+from data.joint_measures import reconstruction_detail
 from data.motion_dataset import pad_motions
 from data.skeleton import Skeleton
 from data.store import StoredItem
@@ -210,6 +211,13 @@ def mpjpe_mm(real: np.ndarray, recon: np.ndarray, lengths: np.ndarray, joints_nu
         a, r = recover_from_ric(real[b, :n], joints_num), recover_from_ric(recon[b, :n], joints_num)
         errors.append(np.linalg.norm((a - a[:, :1]) - (r - r[:, :1]), axis=-1).reshape(-1))
     return 1000.0 * float(np.concatenate(errors).mean())
+
+
+def detail(real: np.ndarray, recon: np.ndarray, lengths: np.ndarray, joints_num: int) -> dict[str, float]:
+    """:func:`data.joint_measures.reconstruction_detail` of two raw feature sets (B, T, D): what of each
+    real motion's path, turns, kicks, waves and jumps the reconstruction keeps."""
+    a, b = recover_from_ric(real, joints_num), recover_from_ric(recon, joints_num)
+    return reconstruction_detail([a[k, :n] for k, n in enumerate(lengths)], [b[k, :n] for k, n in enumerate(lengths)])
 
 
 def text_metrics(text_emb: np.ndarray, motion_emb: np.ndarray, ref: tuple[np.ndarray, np.ndarray],
@@ -406,6 +414,7 @@ def replicate(ref: Reference, r: int, embedder: MotionEmbedder, skeleton: Skelet
         raw = denormalise(rec.reconstruct((d.real - mean) / std, d.lengths), mean, std)
         result[rec.name] = _row_metrics(rec.name, raw, ref, embedder, skeleton, cfg, row_rng(cfg, r, rec.name))
         result[rec.name]["MPJPE_mm"] = mpjpe_mm(d.real, raw, d.lengths, skeleton.joints_num)
+        result[rec.name] |= detail(d.real, raw, d.lengths, skeleton.joints_num)
     for gen in generators:
         if r >= eval_replications(gen, cfg):
             continue
