@@ -261,12 +261,11 @@ def reconstruction_losses(
     joints_num: int,
     joint_space: JointSpace = "global",
 ) -> dict[str, Tensor]:
-    """Feature, joint and path reconstruction terms on normalised features (B, T, D), masked to valid frames.
+    """Feature and joint reconstruction terms on normalised features (B, T, D), masked to valid frames.
 
     ``feature = SmoothL1(x_hat, x)``; ``joint = SmoothL1(J(x_hat), J(x))`` with
     ``J(x) = recover_from_ric(x * std + mean, joints_num)`` (B, T, J, 3), global positions in metres,
-    minus each frame's root joint when ``joint_space="root"`` (see the module docstring);
-    ``path = SmoothL1(J(x_hat)[:, :, 0], J(x)[:, :, 0])``, the root joint's global position (its path).
+    minus each frame's root joint when ``joint_space="root"`` (see the module docstring).
     """
     if joint_space not in ("global", "root"):
         raise ValueError(f"joint_space must be 'global' or 'root', got {joint_space!r}")
@@ -275,10 +274,9 @@ def reconstruction_losses(
     mean_t, std_t = _stat(mean, recon)[:used], _stat(std, recon)[:used]
     j_hat = recover_from_ric(recon[..., :used] * std_t + mean_t, joints_num)
     j = recover_from_ric(target[..., :used] * std_t + mean_t, joints_num)
-    path = masked_smooth_l1(j_hat[..., 0, :], j[..., 0, :], valid)
     if joint_space == "root":
         j_hat, j = j_hat - j_hat[..., :1, :], j - j[..., :1, :]
-    return {"feature": masked_smooth_l1(recon, target, valid), "joint": masked_smooth_l1(j_hat, j, valid), "path": path}
+    return {"feature": masked_smooth_l1(recon, target, valid), "joint": masked_smooth_l1(j_hat, j, valid)}
 
 
 def vae_loss(
@@ -293,18 +291,16 @@ def vae_loss(
     feature_weight: float = 1.0,
     generator: torch.Generator | None = None,
     joint_space: JointSpace = "global",
-    path_weight: float = 0.0,
 ) -> dict[str, Tensor]:
-    """MLD's VAE objective on a batch of normalised features (B, T, D) with lengths (B,), plus a path term.
+    """MLD's VAE objective on a batch of normalised features (B, T, D) with lengths (B,).
 
-    Returns scalars ``feature``, ``joint``, ``path``, ``kl`` (unweighted) and
-    ``total = feature_weight * feature + joint_weight * joint + path_weight * path + kl_weight * kl``.
+    Returns scalars ``feature``, ``joint``, ``kl`` (unweighted) and
+    ``total = feature_weight * feature + joint_weight * joint + kl_weight * kl``.
     ``mean``/``std`` (D,) are the dataset statistics the features were normalised with;
     ``joint_space`` is that of :func:`reconstruction_losses`.
     """
     recon, dist = model(features, lengths, generator)
     terms = reconstruction_losses(recon, features, lengths, mean, std, joints_num, joint_space)
     kl = dist.kl()
-    total = (feature_weight * terms["feature"] + joint_weight * terms["joint"] + path_weight * terms["path"]
-             + kl_weight * kl)
+    total = feature_weight * terms["feature"] + joint_weight * terms["joint"] + kl_weight * kl
     return {**terms, "kl": kl, "total": total}
