@@ -112,7 +112,7 @@ def test_report_html_has_every_table_cell_of_report_md(artifacts: Path) -> None:
     page = PageParser()
     page.feed((eval_dir / "report.html").read_text(encoding="utf-8"))
     expected = markdown_tables((eval_dir / "report.md").read_text(encoding="utf-8"))
-    assert [len(table) for table in expected] == [19, 5, 10, 3]  # text, control, paraphrase, action (with headers)
+    assert [len(table) for table in expected] == [19, 2, 5, 10, 3]  # text, detail, control, paraphrase, action
     assert page.tables == expected
 
 
