@@ -276,10 +276,7 @@ def reconstruction_losses(
     j = recover_from_ric(target[..., :used] * std_t + mean_t, joints_num)
     if joint_space == "root":
         j_hat, j = j_hat - j_hat[..., :1, :], j - j[..., :1, :]
-    fps = 20.0
-    velocity = masked_smooth_l1(fps * j_hat.diff(dim=1), fps * j.diff(dim=1), valid[:, 1:] & valid[:, :-1])
-    return {"feature": masked_smooth_l1(recon, target, valid), "joint": masked_smooth_l1(j_hat, j, valid),
-            "velocity": velocity}
+    return {"feature": masked_smooth_l1(recon, target, valid), "joint": masked_smooth_l1(j_hat, j, valid)}
 
 
 def vae_loss(
@@ -294,7 +291,6 @@ def vae_loss(
     feature_weight: float = 1.0,
     generator: torch.Generator | None = None,
     joint_space: JointSpace = "global",
-    velocity_weight: float = 0.0,
 ) -> dict[str, Tensor]:
     """MLD's VAE objective on a batch of normalised features (B, T, D) with lengths (B,).
 
@@ -306,6 +302,5 @@ def vae_loss(
     recon, dist = model(features, lengths, generator)
     terms = reconstruction_losses(recon, features, lengths, mean, std, joints_num, joint_space)
     kl = dist.kl()
-    total = (feature_weight * terms["feature"] + joint_weight * terms["joint"]
-             + velocity_weight * terms["velocity"] + kl_weight * kl)
+    total = feature_weight * terms["feature"] + joint_weight * terms["joint"] + kl_weight * kl
     return {**terms, "kl": kl, "total": total}

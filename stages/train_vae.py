@@ -43,15 +43,14 @@ def step(batch: dict, ctx: StepContext) -> dict[str, torch.Tensor]:
     cfg = ctx.config
     losses = vae_loss(ctx.models["vae"], batch["motion"], batch["length"], ctx.frozen["mean"], ctx.frozen["std"],
                       cfg["joints_num"], kl_weight=cfg["kl_weight"], joint_weight=cfg["joint_weight"],
-                      joint_space=cfg["joint_space"], velocity_weight=cfg["velocity_weight"])
+                      joint_space=cfg["joint_space"])
     ctx.update(losses["total"])
     return {"loss": losses["total"].detach(), "feature": losses["feature"].detach(),
             "joint": losses["joint"].detach(), "kl": losses["kl"].detach()}
 
 
 SECTION = "train_vae"
-SECTION_KEYS = ("lr", "weight_decay", "crop_frames", "kl_weight", "joint_weight", "joint_space", "velocity_weight", "model",
-                "loop")
+SECTION_KEYS = ("lr", "weight_decay", "crop_frames", "kl_weight", "joint_weight", "joint_space", "model", "loop")
 
 
 def check_section(params: dict[str, Any]) -> None:
@@ -59,7 +58,7 @@ def check_section(params: dict[str, Any]) -> None:
     naming the key, its value and what is allowed."""
     cfg = check_keys(params[SECTION], SECTION, SECTION_KEYS)
     check_number(cfg, "lr", SECTION, low=0.0, low_open=True)
-    for key in ("weight_decay", "kl_weight", "joint_weight", "velocity_weight"):
+    for key in ("weight_decay", "kl_weight", "joint_weight"):
         check_number(cfg, key, SECTION, low=0.0)
     check_number(cfg, "crop_frames", SECTION, low=1, integer=True)
     check_choice(cfg, "joint_space", SECTION, choices=("global", "root"))
@@ -75,7 +74,7 @@ def stage_config(params: dict[str, Any]) -> dict[str, Any]:
         "joints_num": store.joints_num, "crop_frames": cfg["crop_frames"],
         "model": {**cfg["model"], "feature_dim": store.feature_dim}, "lr": cfg["lr"],
         "weight_decay": cfg["weight_decay"], "kl_weight": cfg["kl_weight"], "joint_weight": cfg["joint_weight"],
-        "joint_space": cfg["joint_space"], "velocity_weight": cfg["velocity_weight"],
+        "joint_space": cfg["joint_space"],
     }
 
 
