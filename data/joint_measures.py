@@ -128,7 +128,8 @@ def reconstruction_detail(real: Sequence[np.ndarray], recon: Sequence[np.ndarray
       reconstruction swings that hand at least ``WAVE_KEEP`` times as often;
     - ``jumps_kept``: of the real motions with a jump (:func:`jump_count`), the fraction whose
       reconstruction has the same number of jumps;
-    - ``<name>_refs``: how many references each fraction has (a fraction with none is NaN).
+    - ``<name>_refs``: how many references each fraction has (a fraction with none is absent: it does
+      not apply, as a metric that does not apply to a row is absent from its metrics).
     """
     if len(real) != len(recon):
         raise ValueError(f"reconstruction_detail: {len(real)} real motions but {len(recon)} reconstructions")
@@ -154,6 +155,7 @@ def reconstruction_detail(real: Sequence[np.ndarray], recon: Sequence[np.ndarray
             kept["jumps"].append(jump_count(b) == jumps)
     out = {"path_err_m": float(np.concatenate(path).mean())}
     for name, flags in kept.items():
-        out[f"{name}_kept"] = float(np.mean(flags)) if flags else float("nan")
+        if flags:
+            out[f"{name}_kept"] = float(np.mean(flags))
         out[f"{name}_refs"] = float(len(flags))
     return out

@@ -454,16 +454,18 @@ def _hint_of(gen: Generator, d: Draw, cfg: EvalConfig, r: int, skeleton: Skeleto
 
 
 def aggregate(per_replication: Sequence[Mapping[str, Mapping[str, float]]]) -> dict[str, dict[str, float]]:
-    """{row: {metric: mean, metric_ci: 1.96 std / sqrt(R)}} over the replications that hold the row (no
-    ``_ci`` for a row in one replication only: ``eval_replications``)."""
+    """{row: {metric: mean, metric_ci: 1.96 std / sqrt(R)}} over the replications that hold the row and the
+    metric (no ``_ci`` from one replication only: ``eval_replications``, or a reconstruction-detail
+    fraction whose draw had references in one replication only)."""
     table = {}
     for row in dict.fromkeys(name for rep in per_replication for name in rep):
         reps = [rep[row] for rep in per_replication if row in rep]
         table[row] = {}
-        for key in reps[0]:
-            mean, ci = M.mean_and_ci(np.array([rep[key] for rep in reps]))
+        for key in dict.fromkeys(key for rep in reps for key in rep):
+            values = np.array([rep[key] for rep in reps if key in rep])
+            mean, ci = M.mean_and_ci(values)
             table[row][key] = float(mean)
-            if len(reps) > 1:
+            if len(values) > 1:
                 table[row][f"{key}_ci"] = float(ci)
     return table
 

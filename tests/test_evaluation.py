@@ -231,6 +231,15 @@ def test_aggregate_gives_mean_and_ci():
     assert table["Real"]["FID_ci"] == pytest.approx(1.96 * 1.0 / np.sqrt(2))
 
 
+def test_aggregate_averages_a_metric_over_the_replications_that_have_it():
+    reps = [{"VAE": {"MPJPE_mm": 40.0, "turn_kept": 0.5}}, {"VAE": {"MPJPE_mm": 42.0}},
+            {"VAE": {"MPJPE_mm": 44.0, "turn_kept": 1.0}}]
+    table = aggregate(reps)
+    assert table["VAE"]["MPJPE_mm"] == 42.0 and table["VAE"]["turn_kept"] == 0.75
+    assert table["VAE"]["turn_kept_ci"] == pytest.approx(1.96 * np.std([0.5, 1.0]) / np.sqrt(2))
+    assert "turn_kept" not in aggregate([{"VAE": {"MPJPE_mm": 40.0}}])["VAE"]
+
+
 def test_pad_motions_zero_fills():
     out = pad_motions([np.ones((3, 2)), np.ones((5, 2))], np.array([3, 5]))
     assert out.shape == (2, 5, 2) and out[0, 3:].sum() == 0 and out.sum() == 16
