@@ -105,7 +105,7 @@ def errors(z: torch.Tensor, project: bool = False) -> dict[str, float]:
     motion_emb = embedder.motions(generated, lengths.numpy())
     quality = {"FID": M.frechet_distance(*M.gaussian_statistics(motion_emb), *real_stats),
                "R@3": float(M.r_precision(text_emb, motion_emb, 32, top_k=3)[2]),
-               "Diversity": M.diversity(motion_emb, 300, np.random.default_rng(0))}
+               "Diversity": M.diversity(motion_emb, min(300, len(motion_emb) - 1), np.random.default_rng(0))}
     physics = M.physical_metrics([joints[k, :n] for k, n in enumerate(lengths.numpy())], skeleton)
     return {k: round(v, 3) for k, v in (M.control_errors(joints, target, mask) | quality | physics).items()}
 
