@@ -31,7 +31,8 @@ reference scored against its hints) is judged on the same keyframes.
 The rows named in ``paraphrase_rows`` (each family's headline row) are also scored for what their
 motions *do*, and for captions they never saw (:class:`Semantics`, :mod:`pipelines.paraphrase`):
 ``action_accuracy`` is the action recogniser's accuracy on the row's motions of the draw's
-action-labelled items (the Real row gets it too: the ceiling), and a twin row ``<row>@paraphrase``
+action-labelled items (the Real row gets it too: the ceiling; so does each reconstruction row, the
+ceiling a latent model's decoder allows), and a twin row ``<row>@paraphrase``
 answers the same items, lengths and seeds from held-out paraphrases of their captions. The twin is
 judged exactly as its row, against the draw's *original* captions: the evaluator's word vocabulary
 comes from the training captions, so it cannot read the paraphrases, and both captions state the same
@@ -161,8 +162,8 @@ class Draw:
 
 @dataclass
 class Semantics:
-    """Scores beyond the T2M evaluator, for the rows in ``evaluate.paraphrase_rows`` (built by
-    :func:`pipelines.paraphrase.semantics`).
+    """Scores beyond the T2M evaluator, for Real, the reconstruction rows and the rows in
+    ``evaluate.paraphrase_rows`` (built by :func:`pipelines.paraphrase.semantics`).
 
     Attributes:
         paraphrase: the held-out paraphrase of each item of a draw in replication r (a TextBatch in
@@ -404,7 +405,8 @@ def replicate(ref: Reference, r: int, embedder: MotionEmbedder, skeleton: Skelet
               reconstructors: Sequence[Reconstructor] = (), real: bool = False,
               semantics: Semantics | None = None) -> dict[str, dict[str, float]]:
     """Metrics of the Real row (``real``), every reconstructor and every generator for replication ``r``;
-    with ``semantics``, the action accuracy of Real and of the ``paraphrase_rows`` and their paraphrase rows."""
+    with ``semantics``, the action accuracy of Real, of the reconstructors and of the ``paraphrase_rows`` and
+    their paraphrase rows."""
     d, result = ref.draw, {}
     if real:
         result[REAL] = _row_metrics(REAL, d.real, ref, embedder, skeleton, cfg, row_rng(cfg, r, REAL))
@@ -415,6 +417,8 @@ def replicate(ref: Reference, r: int, embedder: MotionEmbedder, skeleton: Skelet
         result[rec.name] = _row_metrics(rec.name, raw, ref, embedder, skeleton, cfg, row_rng(cfg, r, rec.name))
         result[rec.name]["MPJPE_mm"] = mpjpe_mm(d.real, raw, d.lengths, skeleton.joints_num)
         result[rec.name] |= detail(d.real, raw, d.lengths, skeleton.joints_num)
+        if semantics is not None:
+            result[rec.name] |= _action_accuracy(semantics, raw, d)
     for gen in generators:
         if r >= eval_replications(gen, cfg):
             continue

@@ -116,7 +116,10 @@ def run(name: str, params: dict[str, Any]) -> dict[str, dict[str, float]]:
     rows = [] if name == REAL else family(name).build_rows(ctx)
     actions = [row for row in rows if isinstance(row, ActionGenerator)]
     headline = any(row.name in cfg.paraphrase_rows for row in rows)
-    recognised = bool(actions) or name == REAL or headline  # the rows the action recogniser scores
+    generators = [row for row in rows if isinstance(row, Generator)]
+    reconstructors = [row for row in rows if isinstance(row, Reconstructor) and not isinstance(row, Generator)]
+    scored = name == REAL or headline or bool(reconstructors)  # the text-conditioned rows with an action accuracy
+    recognised = bool(actions) or scored  # the rows the action recogniser scores
     recogniser = (load_recogniser(ctx.trained(RECOGNISER)) if recognised and not skipped(artifacts / RECOGNISER)
                   else None)
     if actions:  # the action-to-motion protocol: the recogniser, not the T2M evaluator
@@ -130,7 +133,7 @@ def run(name: str, params: dict[str, Any]) -> dict[str, dict[str, float]]:
     embedder = load_evaluator(ctx.trained("train_evaluator"))
     skeleton = get_skeleton(params["data"]["skeleton"])
     sem = None
-    if name == REAL or headline:
+    if scored:
         sem = semantics(repo_path(params, "data.root"), test, ctx.store, recogniser, cfg.seed, skeleton.fps,
                         paraphrases=headline)
     if headline and sem.paraphrase is None:
@@ -145,8 +148,6 @@ def run(name: str, params: dict[str, Any]) -> dict[str, dict[str, float]]:
             (tmp / "metrics.json").write_text(json.dumps(table, indent=2) + "\n")
         return table
     refs = load_references(artifacts / "eval" / REAL / REFERENCES, test, cfg)
-    generators = [row for row in rows if isinstance(row, Generator)]
-    reconstructors = [row for row in rows if isinstance(row, Reconstructor) and not isinstance(row, Generator)]
     table = evaluate(refs, test, ctx.store.mean, ctx.store.std, embedder, skeleton, cfg, generators, reconstructors,
                      semantics=sem)
     with atomic_directory(out, owner="evaluate") as tmp:

@@ -60,6 +60,33 @@ def test_no_paraphrase_set_means_no_twin_rows(world):  # noqa: F811
     assert "Retrieval" + PARAPHRASE not in table and table["Retrieval"]["action_accuracy"] == 1.0
 
 
+class Identity:
+    """A reconstructor that gives the motions back."""
+
+    name = "Identity"
+
+    def reconstruct(self, motions: np.ndarray, lengths: np.ndarray) -> np.ndarray:
+        return motions.copy()
+
+
+def test_a_reconstruction_row_gets_the_action_accuracy_of_what_it_gives_back(world):  # noqa: F811
+    codes, test, train = world
+    mean, std = np.zeros(D, np.float32), np.ones(D, np.float32)
+    embedder = StubEmbedder(codes)
+    refs = references(test, embedder, ROWS_CFG)
+    seen = []
+
+    def accuracy(raw: np.ndarray, d: Draw) -> float:
+        seen.append(raw)
+        return 0.5 if len(seen) % 2 == 0 else 1.0  # Real first, then the reconstruction
+
+    table = evaluate(refs, test, mean, std, embedder, HUMANML3D, ROWS_CFG, [], [Identity()], real=True,
+                     semantics=Semantics(None, accuracy))
+    assert table["Real"]["action_accuracy"] == 1.0 and table["Identity"]["action_accuracy"] == 0.5
+    np.testing.assert_allclose(seen[1], seen[0], atol=1e-6)  # scored on the reconstruction of the same draw
+    assert "Identity" + PARAPHRASE not in table  # a reconstruction answers no caption: no paraphrase twin
+
+
 def _item(item_id: str, clip_id: str, start: int, length: int) -> StoredItem:
     return StoredItem(item_id, clip_id, None, start, np.zeros((length, D), np.float32), ["x"], [["x/NOUN"]],
                       np.zeros((1, 4), np.float32), [np.zeros((1, 4), np.float16)])

@@ -19,7 +19,7 @@ from pathlib import Path
 import pytest
 from PIL import Image
 
-from pipelines.report import merge_tables, report_markdown
+from pipelines.report import merge_tables, report_markdown, report_sections
 from pipelines.report_html import report_html
 from stages import report as report_stage
 
@@ -105,6 +105,16 @@ def test_report_markdown_is_the_real_runs_report() -> None:
     tables = [json.loads((FIXTURE / name / "metrics.json").read_text()) for name in report_stage.SOURCES]
     meta = json.loads((FIXTURE / "real" / "meta.json").read_text())
     assert report_markdown(merge_tables(tables), meta) == (FIXTURE / "report.md").read_text(encoding="utf-8")
+
+
+def test_a_reconstructions_action_accuracy_goes_to_the_detail_table_not_the_paraphrase_table() -> None:
+    table = {"Real": {"FID": 0.0, "action_accuracy": 0.96},
+             "VAE": {"FID": 0.8, "path_err_m": 0.25, "action_accuracy": 0.79},
+             "MLD": {"FID": 1.4, "action_accuracy": 0.62}, "MLD@paraphrase": {"FID": 17.0, "action_accuracy": 0.31}}
+    sections = {(section.heading or "").split(" (")[0]: section for section in report_sections(table)}
+    assert list(sections["Reconstruction detail"].rows) == ["VAE"]
+    assert ("action_accuracy", "Action acc. ↑", 3) in sections["Reconstruction detail"].columns
+    assert list(sections["Held-out paraphrases"].rows) == ["Real", "MLD", "MLD@paraphrase"]
 
 
 def test_report_html_has_every_table_cell_of_report_md(artifacts: Path) -> None:
