@@ -35,7 +35,14 @@ frame's joints minus its root joint (still in the global orientation, so a wrong
 error: the root-aligned positions MLD's MPJPE measures). Why ``"root"`` exists: the global positions
 integrate the root velocity over the whole clip, so their error is dominated by trajectory drift that
 the per-frame root-velocity features already supervise, and the gradient goes there instead of to
-the pose (measurements: docs/findings.md, "The root-aligned joint loss").
+the pose (measurements: docs/findings.md, "The root-aligned joint loss"). What it cannot see: the
+whole body's rise in a jump (HumanML3D stores every joint's height above the floor); the feature
+term's root height still does.
+
+``joint_beta`` is the SmoothL1 beta of the joint term, in metres (MLD: 1, as the feature term's). With
+beta 1 the joint term is a squared error for every error a pose has, and its gradient fades as the
+error shrinks; a beta of a few centimetres makes it an L1 error beyond that, which keeps pulling on a
+body that faces the wrong way (docs/findings.md, 2026-12-02 (night)).
 """
 
 from __future__ import annotations
@@ -260,12 +267,14 @@ def reconstruction_losses(
     std: Tensor | np.ndarray,
     joints_num: int,
     joint_space: JointSpace = "global",
+    joint_beta: float = 1.0,
 ) -> dict[str, Tensor]:
     """Feature and joint reconstruction terms on normalised features (B, T, D), masked to valid frames.
 
     ``feature = SmoothL1(x_hat, x)``; ``joint = SmoothL1(J(x_hat), J(x))`` with
     ``J(x) = recover_from_ric(x * std + mean, joints_num)`` (B, T, J, 3), global positions in metres,
-    minus each frame's root joint when ``joint_space="root"`` (see the module docstring).
+    minus each frame's root joint when ``joint_space="root"``; SmoothL1 beta 1 on the features and
+    ``joint_beta`` (metres) on the joints (see the module docstring).
     """
     if joint_space not in ("global", "root"):
         raise ValueError(f"joint_space must be 'global' or 'root', got {joint_space!r}")
@@ -276,7 +285,7 @@ def reconstruction_losses(
     j = recover_from_ric(target[..., :used] * std_t + mean_t, joints_num)
     if joint_space == "root":
         j_hat, j = j_hat - j_hat[..., :1, :], j - j[..., :1, :]
-    return {"feature": masked_smooth_l1(recon, target, valid), "joint": masked_smooth_l1(j_hat, j, valid)}
+    return {"feature": masked_smooth_l1(recon, target, valid), "joint": masked_smooth_l1(j_hat, j, valid, joint_beta)}
 
 
 def vae_loss(
@@ -291,16 +300,17 @@ def vae_loss(
     feature_weight: float = 1.0,
     generator: torch.Generator | None = None,
     joint_space: JointSpace = "global",
+    joint_beta: float = 1.0,
 ) -> dict[str, Tensor]:
     """MLD's VAE objective on a batch of normalised features (B, T, D) with lengths (B,).
 
     Returns scalars ``feature``, ``joint``, ``kl`` (unweighted) and
     ``total = feature_weight * feature + joint_weight * joint + kl_weight * kl``.
     ``mean``/``std`` (D,) are the dataset statistics the features were normalised with;
-    ``joint_space`` is that of :func:`reconstruction_losses`.
+    ``joint_space`` and ``joint_beta`` are those of :func:`reconstruction_losses`.
     """
     recon, dist = model(features, lengths, generator)
-    terms = reconstruction_losses(recon, features, lengths, mean, std, joints_num, joint_space)
+    terms = reconstruction_losses(recon, features, lengths, mean, std, joints_num, joint_space, joint_beta)
     kl = dist.kl()
     total = feature_weight * terms["feature"] + joint_weight * terms["joint"] + kl_weight * kl
     return {**terms, "kl": kl, "total": total}

@@ -170,6 +170,8 @@ def test_masked_smooth_l1_averages_per_sequence() -> None:
     target[:, 3] = 100.0  # padding, ignored
     valid = torch.tensor([[True, True, False, False], [True, False, False, False]])
     assert float(masked_smooth_l1(pred, target, valid)) == pytest.approx((0.125 + 2.5) / 2)
+    # beta 0.01: |x| - beta / 2 beyond beta (nearly L1): 0.495 and 2.995
+    assert float(masked_smooth_l1(pred, target, valid, beta=0.01)) == pytest.approx((0.495 + 2.995) / 2)
 
 
 def test_joint_term_zero_on_equal_and_positive_differentiable_otherwise(stats: tuple[torch.Tensor, ...]) -> None:
