@@ -46,15 +46,16 @@ def main(argv: list[str] | None = None) -> None:
     normalised = ((real - store.mean) / store.std).astype(np.float32)  # padding is ignored by length
     labelled = {id(item) for item in labelled_items(items)}
     which = np.array([id(item) in labelled for item in items])
-    actions = [item.action for item in items if id(item) in labelled]
+    actions = [item.action for item, keep in zip(items, which, strict=True) if keep]
     recogniser = load_recogniser(args.recogniser) if Path(args.recogniser, "model.pt").exists() else None
     for vae in args.vaes:
-        recon = VAEReconstruction(load_vae(Path(vae))).reconstruct(normalised, lengths) * store.std + store.mean
+        recon_normalised = VAEReconstruction(load_vae(Path(vae))).reconstruct(normalised, lengths)
+        recon = recon_normalised * store.std + store.mean
         row = {"MPJPE_mm": mpjpe_mm(real, recon, lengths, store.joints_num),
                **detail(real, recon, lengths, store.joints_num)}
         if recogniser is not None and actions:
             row["action_accuracy"] = action_accuracy(
-                recogniser, ((recon[which] - store.mean) / store.std).astype(np.float32), lengths[which], actions)
+                recogniser, recon_normalised[which].astype(np.float32), lengths[which], actions)
         print(json.dumps({"vae": vae, **{key: round(value, 3) for key, value in row.items()}}))
 
 

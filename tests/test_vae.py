@@ -219,6 +219,30 @@ def test_root_joint_space_ignores_translation_but_not_facing(stats: tuple[torch.
         reconstruction_losses(target, target, lengths, mean, std, JOINTS, "local")
 
 
+def test_joint_beta_known_answer(stats: tuple[torch.Tensor, ...]) -> None:
+    """Every joint 0.10 m higher (root height and RIC heights): only the y third of the channels errs,
+    by 0.5 * 0.1^2 = 0.005 with beta 1 (MLD) and by 0.1 - 0.01 / 2 = 0.095 with beta 0.01."""
+    mean, std = stats
+    feats = torch.tensor(np.load(FIXTURES / "new_joint_vecs_012314.npy")[:20])
+    target = ((feats - mean) / std)[None]
+    rise = feats.clone()
+    rise[:, 3] += 0.10  # root height (m)
+    rise[:, 5 : 4 + 3 * (JOINTS - 1) : 3] += 0.10  # the other joints' heights above the floor
+    rise = ((rise - mean) / std)[None]
+    lengths = torch.tensor([20])
+    mse_like = reconstruction_losses(rise, target, lengths, mean, std, JOINTS)["joint"]
+    l1_like = reconstruction_losses(rise, target, lengths, mean, std, JOINTS, joint_beta=0.01)["joint"]
+    assert float(mse_like) == pytest.approx(0.005 / 3, rel=1e-3)
+    assert float(l1_like) == pytest.approx(0.095 / 3, rel=1e-3)
+    # vae_loss passes joint_beta through (eval mode: no dropout, so both forwards agree)
+    vae = _tiny().eval()
+    x = _smooth_motions(1, 8, torch.tensor([8]))
+    out = vae_loss(vae, x, torch.tensor([8]), mean, std, JOINTS, joint_beta=0.01, generator=_gen(0))
+    recon, _ = vae(x, torch.tensor([8]), _gen(0))
+    expected = reconstruction_losses(recon, x, torch.tensor([8]), mean, std, JOINTS, joint_beta=0.01)["joint"]
+    torch.testing.assert_close(out["joint"], expected)
+
+
 def test_vae_loss_combines_terms(stats: tuple[torch.Tensor, ...]) -> None:
     mean, std = stats
     vae = _tiny()
