@@ -1,0 +1,39 @@
+"""benchmarks/emdm_action_levels.py: a chain from level T is the evaluation's sampling; from level 0, the input."""
+
+import torch
+
+from models.emdm import EMDMConfig, EMDMGenerator, sample_emdm
+from tests.bench_module import load_benchmark
+
+chain_from = load_benchmark("emdm_action_levels").chain_from
+
+
+def _generator() -> EMDMGenerator:
+    torch.manual_seed(0)
+    gen = EMDMGenerator(EMDMConfig(
+        feature_dim=263, condition="action", num_actions=3, width=16, layers=1, heads=2, ff_dim=32, dropout=0.0,
+        z_dim=4, mapping_layers=2, d_width=16, d_layers=1, d_heads=2, d_ff_dim=16, d_time_dim=8,
+        input_skip=True, skip_kernel=3,
+    ))
+    with torch.no_grad():  # away from the zero-initialised output, so G's network matters
+        for p in gen.parameters():
+            p.add_(0.1 * torch.randn_like(p))
+    return gen.eval()
+
+
+def test_chain_from_level_T_equals_sampling_and_level_0_returns_the_input() -> None:
+    gen = _generator()
+    schedule = gen.config.make_schedule()
+    ids, lengths = torch.tensor([0, 2]), torch.tensor([12, 8])
+    valid = (torch.arange(12)[None] < lengths[:, None])[..., None]
+    x_T = torch.where(valid, torch.randn(2, 12, 263, generator=torch.Generator().manual_seed(1)), 0.0)
+    with torch.inference_mode():
+        expected = sample_emdm(gen, schedule, ids, lengths, 2.5, torch.Generator().manual_seed(7), x_T=x_T)
+        got = chain_from(gen, schedule, x_T, schedule.num_steps, ids, lengths, valid, 2.5,
+                         torch.Generator().manual_seed(7))
+        assert torch.allclose(got, expected, atol=1e-5)
+        assert float(got[1, 8:].abs().max()) == 0.0  # padding stays 0
+        other_label = chain_from(gen, schedule, x_T, schedule.num_steps, torch.tensor([1, 1]), lengths, valid, 2.5,
+                                 torch.Generator().manual_seed(7))
+        assert not torch.allclose(other_label, expected, atol=1e-3)  # the label reaches the chain
+        assert torch.equal(chain_from(gen, schedule, x_T, 0, ids, lengths, valid, 2.5, torch.Generator()), x_T)
