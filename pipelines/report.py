@@ -35,6 +35,10 @@ ACTION_COLUMNS = [  # action-to-motion rows (they have an Accuracy) get their ow
     ("Accuracy", "Accuracy ↑", 3), ("FID", "FID ↓", 3), ("Diversity", "Diversity →", 3),
     ("MultiModality", "MModality →", 3), ("NFE", "NFE", 0),
 ]
+SPEED_COLUMNS = [  # the eval_speed stage's rows (stages/speed.py): timed side by side in one process
+    ("ms_per_frame", "ms/frame ↓", 3), ("AITS_s", "AITS (s) ↓", 4), ("NFE", "NFE", 0), ("params_M", "Params (M)", 2),
+    ("speedup", "Speed-up ↑", 1),
+]
 PARAPHRASE_COLUMNS = [  # Real, the headline rows and their paraphrase twins (they have an action_accuracy)
     ("R_precision_top1", "R@1 ↑", 3), ("R_precision_top3", "R@3 ↑", 3), ("FID", "FID ↓", 3),
     ("MM_Dist", "MM-Dist ↓", 3), ("Diversity", "Diversity →", 3), ("action_accuracy", "Action acc. ↑", 3),
@@ -82,11 +86,12 @@ def report_title(meta: dict[str, Any]) -> str:
     return f"Evaluation on {meta['dataset']} ({meta['test_items']} test items, {meta['replications']} replications)"
 
 
-def report_sections(table: dict[str, dict[str, float]]) -> list[Section]:
+def report_sections(table: dict[str, dict[str, float]], speed: dict[str, dict[str, float]] | None = None
+                    ) -> list[Section]:
     """The paper-style table, then the reconstruction-detail table if any row has one, then the control
     table if any row has one, then the paraphrase table if any
     row answered paraphrases, then the action-to-motion table if any row is action-conditioned (paraphrase
-    and action rows are not in the first table)."""
+    and action rows are not in the first table), then the side-by-side ``speed`` table if it has rows."""
     actions = {name: row for name, row in table.items() if "Accuracy" in row}
     texts = {name: row for name, row in table.items() if name not in actions and not name.endswith(PARAPHRASE)}
     reconstructions = {name: row for name, row in texts.items() if "path_err_m" in row}
@@ -109,6 +114,11 @@ def report_sections(table: dict[str, dict[str, float]]) -> list[Section]:
         sections.append(Section("Action-to-motion (the labelled single-action test motions; FID, Diversity and "
                                 "MultiModality in the action recogniser's features, not comparable with the table "
                                 "above)", actions, ACTION_COLUMNS))
+    if speed:
+        sections.append(Section("Inference speed side by side (timed in one process, batch 1, warm, in rounds of "
+                                "alternating order: stage eval_speed; Speed-up: the slowest row's ms/frame over the "
+                                "row's; Params: the row's networks, the shared text encoder not counted)",
+                                speed, SPEED_COLUMNS))
     return sections
 
 
@@ -139,11 +149,12 @@ def _markdown_table(section: Section) -> list[str]:
         "| " + " | ".join(cells) + " |" for cells in rows]
 
 
-def report_markdown(table: dict[str, dict[str, float]], meta: dict[str, Any]) -> str:
+def report_markdown(table: dict[str, dict[str, float]], meta: dict[str, Any],
+                    speed: dict[str, dict[str, float]] | None = None) -> str:
     """The report as markdown: title, the tables of :func:`report_sections` (mean ± 95% CI over
     replications) and the notes."""
     lines = [f"# {report_title(meta)}"]
-    for section in report_sections(table):
+    for section in report_sections(table, speed):
         if section.heading is not None:
             lines += ["", f"## {section.heading}"]
         lines += ["", *_markdown_table(section)]

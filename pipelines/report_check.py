@@ -5,7 +5,9 @@ registry (:data:`pipelines.registry.FAMILIES`), ``<eval dir>/<family>/metrics.js
 ``rows`` function builds, as its ``eval_<family>`` stage wrote them) into ``<eval dir>/metrics.json``.
 This check fails (exit status 1, one line per problem on stderr) when a source has no table or an
 empty one, one of its rows is missing from the merged table or differs there, or a row lacks its
-protocol's core metrics or holds a value that is not a finite number. CI runs it after the smoke
+protocol's core metrics or holds a value that is not a finite number, or when the side-by-side speed
+table (``<eval dir>/speed/metrics.json``, stage ``eval_speed``) is missing, empty, or has a row without
+its timing figures. CI runs it after the smoke
 pipeline (``.ci/smoke``); the default ``<eval dir>`` is ``artifacts/eval``.
 """
 
@@ -27,6 +29,9 @@ SOURCES = ("real", *FAMILIES)
 TEXT_METRICS = ("R_precision_top1", "R_precision_top2", "R_precision_top3", "FID", "MM_Dist", "Diversity")
 #: Metrics every row of the action-to-motion protocol has (pipelines/action_evaluation.py).
 ACTION_METRICS = ("Accuracy", "FID", "Diversity")
+#: The side-by-side speed table (stages/speed.py) and the figures each of its rows has.
+SPEED = "speed"
+SPEED_METRICS = ("ms_per_frame", "AITS_s", "NFE", "params_M", "speedup")
 
 
 def _read_table(path: Path, problems: list[str]) -> dict[str, dict[str, Any]] | None:
@@ -77,7 +82,19 @@ def check_rows(eval_dir: Path) -> list[str]:
                 problems.append(f"{merged_path}: row {name!r} differs from {path}")
     for name, metrics in merged.items():
         problems += [f"{merged_path}: {problem}" for problem in row_problems(name, metrics)]
+    speed_path = Path(eval_dir) / SPEED / "metrics.json"
+    speed = _read_table(speed_path, problems)
+    if speed is not None and not speed:
+        problems.append(f"{speed_path}: no rows")
+    for name, metrics in (speed or {}).items():
+        missing = [key for key in SPEED_METRICS if not _finite(metrics.get(key))]
+        if missing:
+            problems.append(f"{speed_path}: row {name!r} has no finite {', '.join(missing)}")
     return problems
+
+
+def _finite(value: Any) -> bool:
+    return isinstance(value, numbers.Real) and not isinstance(value, bool) and math.isfinite(value)
 
 
 def main(argv: Sequence[str] | None = None) -> None:

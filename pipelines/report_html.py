@@ -61,14 +61,14 @@ def _row_of(sample_name: str) -> str:
 
 
 def report_html(table: dict[str, dict[str, float]], meta: dict[str, object], plot_png: bytes,
-                samples: Sequence[tuple[str, bytes]]) -> str:
+                samples: Sequence[tuple[str, bytes]], speed: dict[str, dict[str, float]] | None = None) -> str:
     """The page: title, the tables of :func:`pipelines.report.report_sections`, the notes, the plot, and
     the samples (``(file name, bytes)``) grouped under the row they belong to, rows and files in the given
-    order."""
+    order. ``speed``: the side-by-side timing table, if any."""
     title = html.escape(report_title(meta))
     lines = ["<!DOCTYPE html>", '<html lang="en">', "<head>", '<meta charset="utf-8">', f"<title>{title}</title>",
              f"<style>\n{CSS}\n</style>", "</head>", "<body>", f"<h1>{title}</h1>"]
-    for section in report_sections(table):
+    for section in report_sections(table, speed):
         if section.heading is not None:
             lines.append(f"<h2>{html.escape(section.heading)}</h2>")
         lines += _table(section)

@@ -3,7 +3,8 @@
 ``python -m stages.report [key=value ...]`` reads ``artifacts/eval/real/`` and
 ``artifacts/eval/<family>/`` for every family of the model registry and writes
 ``artifacts/eval/metrics.json`` (``{row: {metric: value}}``, the rows in registry order after
-``Real``), ``summary.json`` (its headline figures, the DVC metrics file), ``report.md`` (the
+``Real``), and ``artifacts/eval/speed/`` (stage ``eval_speed``: the rows timed side by side),
+``summary.json`` (its headline figures, the DVC metrics file), ``report.md`` (the
 paper-style table, also printed), ``fid_vs_time.png``, ``samples/`` (every family's rendered sample
 animations) and ``report.html`` (the tables, the plot and the samples in one self-contained page that
 opens offline). Each file is replaced atomically.
@@ -25,6 +26,7 @@ from pipelines.report_html import report_html
 
 PARAMS = ("paths.artifacts",)
 SOURCES = ("real", *FAMILIES)
+SPEED = "speed"  # stages/speed.py's folder
 
 #: The figures ``summary.json`` keeps, ``(row, metric)``: the evaluator's R-precision on real motions and
 #: the FID of each family's headline row. Few enough for one line of ``dvc metrics show`` and
@@ -60,9 +62,9 @@ def _read_samples(eval_dir: Path) -> list[tuple[str, bytes]]:
 
 
 def _write_html(eval_dir: Path, table: dict[str, dict[str, float]], meta: dict[str, Any],
-                samples: list[tuple[str, bytes]]) -> None:
-    """``report.html`` from the merged table, the plot already written and the samples."""
-    page = report_html(table, meta, (eval_dir / "fid_vs_time.png").read_bytes(), samples)
+                samples: list[tuple[str, bytes]], speed: dict[str, dict[str, float]]) -> None:
+    """``report.html`` from the merged table, the plot already written, the samples and the speed table."""
+    page = report_html(table, meta, (eval_dir / "fid_vs_time.png").read_bytes(), samples, speed)
     _replace(eval_dir / "report.html", lambda p: p.write_text(page, encoding="utf-8"))
 
 
@@ -84,8 +86,9 @@ def run(params: dict[str, Any]) -> dict[str, dict[str, float]]:
     check_output(eval_dir / "samples", owner="report")
     table = merge_tables([_read_json(eval_dir / name / "metrics.json") for name in SOURCES])
     meta = _read_json(eval_dir / "real" / "meta.json")
+    speed = _read_json(eval_dir / SPEED / "metrics.json")
     samples = _read_samples(eval_dir)
-    report = report_markdown(table, meta)
+    report = report_markdown(table, meta, speed)
     _replace(eval_dir / "metrics.json", lambda p: p.write_text(json.dumps(table, indent=2) + "\n"))
     _replace(eval_dir / "summary.json", lambda p: p.write_text(json.dumps(summary(table), indent=2) + "\n"))
     _replace(eval_dir / "report.md", lambda p: p.write_text(report, encoding="utf-8"))
@@ -93,7 +96,7 @@ def run(params: dict[str, Any]) -> dict[str, dict[str, float]]:
     with atomic_directory(eval_dir / "samples", owner="report") as tmp:
         for name, data in samples:
             (tmp / name).write_bytes(data)
-    _write_html(eval_dir, table, meta, samples)
+    _write_html(eval_dir, table, meta, samples, speed)
     print(report)
     return table
 

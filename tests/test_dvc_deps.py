@@ -34,6 +34,8 @@ def declared(name: str) -> tuple[list[str], tuple[str, ...]]:
             return [module], mod.PARAMS
         family = FAMILIES[args[0]]
         return [module, family.module], mod.PARAMS + family.params
+    if module == "stages.speed":  # builds the rows of the families it times, through the registry
+        return [module, *(FAMILIES[name].module for name in mod.TIMED)], mod.PARAMS
     params = mod.STAGE.params if hasattr(mod, "STAGE") else mod.PARAMS
     return [module], params
 
@@ -71,6 +73,16 @@ def test_every_family_has_its_evaluation_stage_with_its_training_outputs() -> No
             assert f"artifacts/{train}" in stage["deps"], f"eval_{family.name} must depend on artifacts/{train}"
         assert f"artifacts/eval/{family.name}" in DVC["report"]["deps"]
         assert f"artifacts/eval/{family.name}" in stage["outs"]
+
+
+def test_the_speed_stage_depends_on_the_training_outputs_of_the_families_it_times() -> None:
+    from stages.speed import OUT, TIMED
+
+    stage = DVC["eval_speed"]
+    for name in TIMED:
+        for train in FAMILIES[name].train_stages:
+            assert f"artifacts/{train}" in stage["deps"], f"eval_speed must depend on artifacts/{train}"
+    assert f"artifacts/eval/{OUT}" in stage["outs"] and f"artifacts/eval/{OUT}" in DVC["report"]["deps"]
 
 
 def test_a_model_edit_touches_its_family_only() -> None:

@@ -19,7 +19,7 @@ from pathlib import Path
 import pytest
 from PIL import Image
 
-from pipelines.report import merge_tables, report_markdown, report_sections
+from pipelines.report import merge_tables, report_markdown, report_sections, table_cells
 from pipelines.report_html import report_html
 from stages import report as report_stage
 
@@ -104,7 +104,21 @@ def test_report_markdown_is_the_real_runs_report() -> None:
     """Splitting report_markdown into sections for the HTML page left its output byte for byte."""
     tables = [json.loads((FIXTURE / name / "metrics.json").read_text()) for name in report_stage.SOURCES]
     meta = json.loads((FIXTURE / "real" / "meta.json").read_text())
-    assert report_markdown(merge_tables(tables), meta) == (FIXTURE / "report.md").read_text(encoding="utf-8")
+    speed = json.loads((FIXTURE / report_stage.SPEED / "metrics.json").read_text())
+    assert report_markdown(merge_tables(tables), meta, speed) == (FIXTURE / "report.md").read_text(encoding="utf-8")
+
+
+def test_the_speed_table_comes_last_with_its_columns_and_only_when_it_has_rows() -> None:
+    table = {"Real": {"R_precision_top3": 0.9, "FID": 0.0}}
+    speed = {"EMDM-10": {"ms_per_frame": 0.5, "AITS_s": 0.05, "NFE": 20.0, "params_M": 1.23, "speedup": 120.4},
+             "MotionDiffuse-1000": {"ms_per_frame": 60.2, "AITS_s": 7.2, "NFE": 1000.0, "params_M": 1.4,
+                                    "speedup": 1.0}}
+    last = report_sections(table, speed)[-1]
+    assert last.heading.startswith("Inference speed side by side") and list(last.rows) == list(speed)
+    header, rows = table_cells(last)
+    assert header == ["Method", "ms/frame ↓", "AITS (s) ↓", "NFE", "Params (M)", "Speed-up ↑"]
+    assert rows[0] == ["EMDM-10", "0.500", "0.0500", "20", "1.23", "120.4"]
+    assert len(report_sections(table, {})) == len(report_sections(table)) == 1
 
 
 def test_a_reconstructions_action_accuracy_goes_to_the_detail_table_not_the_paraphrase_table() -> None:
@@ -122,7 +136,8 @@ def test_report_html_has_every_table_cell_of_report_md(artifacts: Path) -> None:
     page = PageParser()
     page.feed((eval_dir / "report.html").read_text(encoding="utf-8"))
     expected = markdown_tables((eval_dir / "report.md").read_text(encoding="utf-8"))
-    assert [len(table) for table in expected] == [19, 2, 5, 10, 3]  # text, detail, control, paraphrase, action
+    # text, detail, control, paraphrase, action, speed
+    assert [len(table) for table in expected] == [19, 2, 5, 10, 3, 3]
     assert page.tables == expected
 
 

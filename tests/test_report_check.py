@@ -1,5 +1,6 @@
 """The results-table check CI runs after the smoke pipeline (pipelines/report_check.py): a complete table
-passes; a missing family, a dropped or changed row, a missing core metric or a NaN fails with one line each."""
+passes; a missing family, a dropped or changed row, a missing core metric or a NaN fails with one line each,
+and so does a missing, empty or incomplete speed table."""
 
 from __future__ import annotations
 
@@ -14,6 +15,7 @@ from pipelines.report_check import SOURCES, check_rows, main
 TEXT_ROW = {"R_precision_top1": 0.2, "R_precision_top2": 0.3, "R_precision_top3": 0.4, "FID": 1.5, "MM_Dist": 3.0,
             "Diversity": 2.0, "FID_ci": 0.1}
 ACTION_ROW = {"Accuracy": 0.8, "FID": 2.0, "Diversity": 1.0, "MultiModality": 0.5}
+SPEED_ROW = {"ms_per_frame": 0.5, "AITS_s": 0.05, "NFE": 20.0, "params_M": 1.2, "speedup": 100.0, "rounds": 2.0}
 
 
 def _write(path: Path, table: dict) -> None:
@@ -29,6 +31,7 @@ def eval_dir(root: Path) -> Path:
         _write(root / source / "metrics.json", table)
         merged |= table
     _write(root / "metrics.json", merged)
+    _write(root / "speed" / "metrics.json", {"EMDM-10": dict(SPEED_ROW), "MotionDiffuse-1000": dict(SPEED_ROW)})
     return root
 
 
@@ -79,6 +82,19 @@ def test_action_rows_need_the_action_metrics(tmp_path: Path) -> None:
     _write(root / "metrics.json", merged)
     problems = check_rows(root)
     assert f"{root / 'metrics.json'}: row 'emdm-action-row' has no R_precision_top1" in problems
+
+
+def test_the_speed_table_must_be_there_with_its_timing_figures(tmp_path: Path) -> None:
+    root = eval_dir(tmp_path)
+    speed_path = root / "speed" / "metrics.json"
+    _write(speed_path, {"EMDM-10": {**SPEED_ROW, "speedup": float("inf")},
+                        "MotionDiffuse-1000": {k: v for k, v in SPEED_ROW.items() if k != "params_M"}})
+    assert check_rows(root) == [f"{speed_path}: row 'EMDM-10' has no finite speedup",
+                                f"{speed_path}: row 'MotionDiffuse-1000' has no finite params_M"]
+    _write(speed_path, {})
+    assert check_rows(root) == [f"{speed_path}: no rows"]
+    speed_path.unlink()
+    assert check_rows(root) == [f"{speed_path}: missing"]
 
 
 def test_a_missing_report_is_the_only_problem(tmp_path: Path) -> None:
