@@ -14,7 +14,6 @@ for the lowest levels, the accuracy of the noisy x_k itself and of the generator
 
 from __future__ import annotations
 
-import argparse
 import sys
 from pathlib import Path
 
@@ -22,6 +21,9 @@ import numpy as np
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # the sibling benchmark emdm_levels, also when imported
+
+from emdm_levels import load_from_command_line  # noqa: E402
 
 from models.emdm import EMDMGenerator, EMDMSchedule, guided_x0  # noqa: E402
 from pipelines.action_evaluation import (  # noqa: E402
@@ -32,8 +34,7 @@ from pipelines.action_evaluation import (  # noqa: E402
     renormalise,
 )
 from pipelines.cli import artifacts_dir, repo_path  # noqa: E402
-from pipelines.config import load_params  # noqa: E402
-from pipelines.emdm_family import ACTION_STAGE, load_emdm  # noqa: E402
+from pipelines.emdm_family import ACTION_STAGE  # noqa: E402
 from pipelines.feature_store import FeatureStore  # noqa: E402
 
 
@@ -50,13 +51,8 @@ def chain_from(generator: EMDMGenerator, schedule: EMDMSchedule, x_k: torch.Tens
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--raw", action="store_true")
-    parser.add_argument("overrides", nargs="*")
-    args = parser.parse_args()
-    params = load_params(args.overrides)
     torch.set_num_threads(2)
-    generator, schedule, config = load_emdm(artifacts_dir(params) / ACTION_STAGE, use_ema=not args.raw)
+    generator, schedule, config, params = load_from_command_line(__doc__, ACTION_STAGE)
     store = FeatureStore(repo_path(params, "features.out"))
     recogniser = load_recogniser(artifacts_dir(params) / "train_evaluator_recogniser")
     items = labelled_items(store.split("test"), recogniser.config.classes)
