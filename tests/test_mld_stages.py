@@ -25,6 +25,7 @@ from stages import (
     evaluate,
     generate,
     report,
+    speed,
     train_controlnet,
     train_emdm,
     train_emdm_action,
@@ -189,6 +190,11 @@ def test_evaluation_stages_and_report(trained):
     assert list(rows["emdm"]) == ["EMDM-10"] and list(rows["emdm-action"]) == ["Real-action", "EMDM-action"]
     assert list(rows["motiondiffuse"]) == ["MotionDiffuse-50", "MotionDiffuse-DDIM10"]
     assert rows["emdm-action"]["Real-action"]["Accuracy"] > 0 and "Accuracy" not in rows["emdm"]["EMDM-10"]
+    timed = speed.run(trained | {"speed": {"rows": ["EMDM-10", "MotionDiffuse-50"], "rounds": 1}})
+    assert list(timed) == ["EMDM-10", "MotionDiffuse-50"] and [t["NFE"] for t in timed.values()] == [20, 50]
+    assert sorted(t["speedup"] for t in timed.values())[0] == 1.0 and all(t["params_M"] > 0 for t in timed.values())
+    with pytest.raises(ValueError, match="speed.rows: no generator row"):
+        speed.run(trained | {"speed": {"rows": ["EMDM-10", "MotionDiffuse-1000"], "rounds": 1}})
     table = report.run(trained)
     assert list(table) == [row for name in ("real", *FAMILIES) for row in rows[name]]
     assert table["VAE"]["MPJPE_mm"] > 0 and "MPJPE_mm" not in table["Real"]
@@ -202,6 +208,7 @@ def test_evaluation_stages_and_report(trained):
     assert "## Trajectory control" in (out / "report.md").read_text()
     assert "## Reconstruction detail" in (out / "report.md").read_text()
     assert "## Action-to-motion" in (out / "report.md").read_text()
+    assert "| MotionDiffuse-50 |" in (out / "report.md").read_text().split("## Inference speed side by side")[1]
     assert (out / "samples" / "MLD-DDIM50_0.gif").stat().st_size > 1000
     # a family evaluated again alone gives the same values: its rows do not depend on the others
     again = evaluate.run("baselines", trained)
