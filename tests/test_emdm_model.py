@@ -353,6 +353,28 @@ def test_skip_kernel_starts_as_the_scalar_skip_and_filters_valid_neighbours_only
         _nets(skip_kernel=2)
 
 
+def test_skip_filter_equals_the_window_sum_with_its_gradients() -> None:
+    """The filter (one depthwise convolution) against its definition: out[n] = sum_j taps[j] x[n + j - k//2]
+    over valid frames, zero outside; values and both gradients, for random taps and mixed lengths."""
+    gen, _ = _nets(input_skip=True, skip_kernel=5)
+    g = _gen(4)
+    with torch.no_grad():
+        gen.skip.copy_(torch.randn(gen.skip.shape, generator=g))
+    x = torch.randn(3, 9, D, generator=g, requires_grad=True)
+    w = torch.randn(3, 9, D, generator=g)
+    steps, lengths = torch.tensor([2, 7, 2]), torch.tensor([9, 5, 1])
+    valid = lengths_to_mask(lengths, 9)
+    got = gen.skipped(x, steps, valid)
+    grads = torch.autograd.grad((got * w).sum(), (x, gen.skip))
+    taps = gen.skip[steps]  # (B, D, 5)
+    padded = torch.nn.functional.pad(torch.where(valid[..., None], x, 0.0), (0, 0, 2, 2))
+    want = sum(padded[:, j:j + 9] * taps[:, None, :, j] for j in range(5))
+    torch.testing.assert_close(got, want)
+    for a, b in zip(grads, torch.autograd.grad((want * w).sum(), (x, gen.skip)), strict=True):
+        torch.testing.assert_close(a, b)
+    assert torch.equal(grads[0][1, 5:], torch.zeros(4, D))  # padded frames get no gradient
+
+
 def test_skip_filter_gradient_is_bit_identical_run_to_run() -> None:
     """Repeated steps in a batch: the skip taps' gradient must not depend on summation order (the
     backward of ``skip[steps]`` made EMDM's training differ run to run on two threads; ``index_select``'s
