@@ -354,8 +354,8 @@ def test_skip_kernel_starts_as_the_scalar_skip_and_filters_valid_neighbours_only
 
 
 def test_skip_filter_equals_the_window_sum_with_its_gradients() -> None:
-    """The filter (one depthwise convolution) against its definition: out[n] = sum_j taps[j] x[n + j - k//2]
-    over valid frames, zero outside; values and both gradients, for random taps and mixed lengths."""
+    """The filter against its definition: out[n] = sum_j taps[j] x[n + j - k//2] over valid frames, zero
+    outside; values and both gradients, for random taps and mixed lengths."""
     gen, _ = _nets(input_skip=True, skip_kernel=5)
     g = _gen(4)
     with torch.no_grad():
