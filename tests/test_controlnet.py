@@ -92,10 +92,11 @@ def test_controlnet_copies_the_student_and_only_it_trains():
     assert "transformer.norm.weight" not in copied and "latent_out.weight" not in copied  # unused by a ControlNet
 
 
-def test_encoder_ignores_uncontrolled_entries():
+@pytest.mark.parametrize("patch_frames", [1, 4])  # 4: the 10 frames padded to 3 tokens of 4
+def test_encoder_ignores_uncontrolled_entries(patch_frames: int):
     """Hint values outside the mask never reach the ControlNet; the mask itself does."""
     base = student()
-    controlnet = MotionControlNet(base, control_config())
+    controlnet = MotionControlNet(base, control_config(patch_frames=patch_frames))
     randomise(controlnet)
     x = batch()
     out = controlnet.encoder(x["hint"], x["mask"])
@@ -109,6 +110,21 @@ def test_encoder_ignores_uncontrolled_entries():
     nothing = controlnet.encoder(x["hint"], torch.zeros_like(x["mask"]))  # only the global tokens: finite
     assert torch.isfinite(nothing).all()
 
+
+
+def test_patched_encoder_tells_a_controlled_frame_at_the_mean_from_an_uncontrolled_one():
+    """With several frames per token a masked position reads 0, as a controlled one at the mean does:
+    the mask bits beside the positions keep the two apart (models/controlnet.py)."""
+    base = student()
+    controlnet = MotionControlNet(base, control_config(patch_frames=4))
+    randomise(controlnet)
+    x = batch()
+    at_mean = torch.where(x["mask"][..., None], x["hint"], 0.0)  # hint_mean is 0: uncontrolled entries at the mean
+    mask = x["mask"].clone()
+    out = controlnet.encoder(at_mean, mask)
+    mask[:, 1, 0] = True  # frame 1 shares a token with controlled frames 0 and 2, its hint exactly at the mean
+    assert not torch.allclose(controlnet.encoder(at_mean, mask), out, atol=1e-4)
+    assert controlnet.encoder.input.in_features == 4 * 4 * J  # 4 frames x (3 positions + 1 mask bit) per joint
 
 def test_control_loss_known_values():
     joints = torch.zeros(2, 4, J, 3)
@@ -257,8 +273,10 @@ def test_hint_validation():
         Hint(joints, mask)
 
 
-def test_control_config_validates_statistics():
+def test_control_config_validates_statistics_and_patch():
     with pytest.raises(ValueError, match="66 values"):
         ControlConfig(joints_num=J, hint_mean=[0.0] * 3, hint_std=[1.0] * 3)
     with pytest.raises(ValueError, match="positive"):
         ControlConfig(joints_num=J, hint_mean=[0.0] * 66, hint_std=[0.0] * 66)
+    with pytest.raises(ValueError, match="patch_frames must be >= 1, got 0"):
+        control_config(patch_frames=0)
