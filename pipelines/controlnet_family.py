@@ -35,11 +35,10 @@ if TYPE_CHECKING:
 
 
 def load_controlnet(out_dir: Path, student: MLDDenoiser) -> MotionControlNet:
-    """The trained ControlNet of a ``train_controlnet`` output folder, on ``student``, in eval mode (its
-    EMA weights when it was trained with ``ema_decay``)."""
+    """The trained ControlNet of a ``train_controlnet`` output folder, on ``student``, in eval mode."""
     payload = load_final_model(out_dir)
     controlnet = MotionControlNet(student, ControlConfig(**payload["config"]["control"]))
-    controlnet.load_state_dict(payload["ema"].get("controlnet") or payload["models"]["controlnet"])
+    controlnet.load_state_dict(payload["models"]["controlnet"])
     return controlnet.eval()
 
 

@@ -39,7 +39,7 @@ def build(config: dict) -> Components:
     params = [p for p in controlnet.parameters() if p.requires_grad]
     opt = torch.optim.AdamW(params, lr=config["lr"], weight_decay=config["weight_decay"])
     vae = load_vae(Path(config["vae_dir"])).requires_grad_(False)
-    return Components(models={"controlnet": controlnet}, optimizers={"adamw": opt}, ema=config["ema"],
+    return Components(models={"controlnet": controlnet}, optimizers={"adamw": opt},
                       frozen={"student": student, "vae": vae, "schedule": schedule})
 
 
@@ -68,7 +68,7 @@ def hint_statistics(features_dir: Path) -> tuple[list[float], list[float]]:
 
 
 SECTION = "train_controlnet"
-SECTION_KEYS = ("lr", "weight_decay", "ema_decay", "control_weight", "train_joints", "encoder", "loop")
+SECTION_KEYS = ("lr", "weight_decay", "control_weight", "train_joints", "encoder", "loop")
 
 
 def check_section(params: dict[str, Any]) -> None:
@@ -77,7 +77,6 @@ def check_section(params: dict[str, Any]) -> None:
     cfg = check_keys(params[SECTION], SECTION, SECTION_KEYS)
     check_number(cfg, "lr", SECTION, low=0.0, low_open=True)
     check_number(cfg, "weight_decay", SECTION, low=0.0)
-    check_number(cfg, "ema_decay", SECTION, low=0.0, high=1.0, high_open=True)
     check_number(cfg, "control_weight", SECTION, low=0.0)
     joints = cfg["train_joints"]
     try:
@@ -102,7 +101,6 @@ def stage_config(params: dict[str, Any]) -> dict[str, Any]:
                                          "model", "w_range", "num_ddim_steps")},
         "control": control.to_dict(),
         **{key: cfg[key] for key in ("lr", "weight_decay", "control_weight")},
-        "ema": {"controlnet": cfg["ema_decay"]} if cfg["ema_decay"] else {},
     }
 
 
