@@ -1,6 +1,6 @@
 """Probe: EMDM's trained generator sampled with DDIM(eta) updates instead of the posterior draw of Alg. 1.
 
-    python benchmarks/emdm_eta.py [--eta 1 0.5 0] [key=value ...]
+    python benchmarks/emdm_eta.py [key=value ...] [--eta 1 0.5 0]
 
 Each step keeps x0_hat = G(x_{t+1}, t, z, c) and moves to level t along DDIM (Song et al. 2021, Eq. 12)::
 
@@ -28,7 +28,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from models.emdm import EMDMSchedule  # noqa: E402
 from pipelines.cli import artifacts_dir, repo_path  # noqa: E402
 from pipelines.config import load_params  # noqa: E402
-from pipelines.registry import EvalContext, family  # noqa: E402
+from pipelines.emdm_family import emdm_rows  # noqa: E402
+from pipelines.registry import EvalContext  # noqa: E402
 from pipelines.validation import generator_scores  # noqa: E402
 
 
@@ -46,9 +47,11 @@ def main() -> None:
     parser.add_argument("--eta", type=float, nargs="+", default=[1.0, 0.5, 0.0])
     parser.add_argument("overrides", nargs="*", help="params overrides, e.g. paths.artifacts=/tmp/probe")
     args = parser.parse_args()
+    if not all(0.0 <= eta <= 1.0 for eta in args.eta):
+        parser.error(f"--eta: each value must lie in [0, 1], got {args.eta}")
     params = load_params(args.overrides)
     ctx = EvalContext(params, artifacts_dir(params), repo_path(params, "features.out"))
-    row = next(r for r in family("emdm").build_rows(ctx) if r.name == "EMDM-10")
+    (row,) = emdm_rows(ctx)
     for eta in args.eta:
         row.schedule.posterior_sample = (  # this row's schedule only; the sampler calls it at every step
             lambda x0, x_next, t, noise, eta=eta: ddim_step(row.schedule, x0, x_next, t, noise, eta))

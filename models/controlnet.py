@@ -13,11 +13,12 @@ Architecture (:class:`MotionControlNet`):
   sinusoidal positional encoding, a skip transformer whose self-attention ignores every token
   without a controlled joint (a motion with no control at all sees only its global tokens), then
   the global tokens' outputs through a **zero-initialised** ``Linear(d -> C)``: a condition c_h
-  (B, L, C) of the latent's shape. Documented choice for P > 1: a patch can mix controlled and
-  uncontrolled frames, and a masked position reads 0, as a controlled one at the mean would, so
-  the mask bits go in beside the positions. The encoder's self-attention over T + L tokens is
-  about half the cost of a training step at P = 1 (the other half: decoding for Eq. 9), and P = 4
-  shortens its sequence fourfold (docs/controlnet.md).
+  (B, L, C) of the latent's shape. Documented choice for P > 1: a masked position reads 0, as a
+  controlled one at the mean would; at P = 1 that ambiguity is only between the joints of one
+  frame, but a patch also mixes controlled and uncontrolled frames, so the mask bits go in beside
+  the positions. At P = 1 the encoder (a transformer over T + L tokens) is about half the cost of
+  a training step (the other half: decoding for Eq. 9); P = 4 shortens its sequence fourfold
+  (``benchmarks/controlnet_step.py``, docs/controlnet.md).
 - **ControlNet**: a trainable copy of the MotionLCM student denoiser (its guidance projection and
   word-token attention included), given ``z_t + c_h`` and the same t, text and w. Layer i's output
   goes through its own **zero-initialised** ``Linear(h -> h)``; the results are the residuals the

@@ -107,9 +107,15 @@ def test_encoder_ignores_uncontrolled_entries(patch_frames: int):
     fewer = x["mask"].clone()
     fewer[:, 4:] = False
     assert not torch.allclose(controlnet.encoder(x["hint"], fewer), out, atol=1e-4)
+    first = controlnet.encoder(x["hint"][:, :4], fewer[:, :4])  # tokens with no controlled frame are not attended
+    assert torch.allclose(controlnet.encoder(x["hint"], fewer), first, atol=float32_atol(first))
     nothing = controlnet.encoder(x["hint"], torch.zeros_like(x["mask"]))  # only the global tokens: finite
     assert torch.isfinite(nothing).all()
-
+    # uncontrolled frames appended (12 frames: 3 whole tokens of 4) change nothing, whatever they hold
+    longer = torch.cat([x["hint"], torch.full_like(x["hint"][:, :2], float("nan"))], dim=1)
+    longer_mask = torch.cat([x["mask"], torch.zeros_like(x["mask"][:, :2])], dim=1)
+    assert torch.allclose(controlnet.encoder(longer, longer_mask), out, atol=float32_atol(out))
+    assert controlnet.encoder.input.in_features == (3 * J if patch_frames == 1 else patch_frames * 4 * J)
 
 
 def test_patched_encoder_tells_a_controlled_frame_at_the_mean_from_an_uncontrolled_one():
@@ -124,7 +130,7 @@ def test_patched_encoder_tells_a_controlled_frame_at_the_mean_from_an_uncontroll
     out = controlnet.encoder(at_mean, mask)
     mask[:, 1, 0] = True  # frame 1 shares a token with controlled frames 0 and 2, its hint exactly at the mean
     assert not torch.allclose(controlnet.encoder(at_mean, mask), out, atol=1e-4)
-    assert controlnet.encoder.input.in_features == 4 * 4 * J  # 4 frames x (3 positions + 1 mask bit) per joint
+
 
 def test_control_loss_known_values():
     joints = torch.zeros(2, 4, J, 3)
