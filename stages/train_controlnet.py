@@ -85,6 +85,7 @@ def check_section(params: dict[str, Any]) -> None:
         raise ValueError(f"{SECTION}.train_joints: {err}") from err
     check_fields(cfg["encoder"], ControlConfig, f"{SECTION}.encoder",
                  exclude=("joints_num", "hint_mean", "hint_std", "train_joints"))
+    check_number(cfg["encoder"], "patch_frames", f"{SECTION}.encoder", low=1, integer=True)
 
 
 def stage_config(params: dict[str, Any]) -> dict[str, Any]:

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import re
+
 import numpy as np
 import pytest
 import torch
@@ -24,6 +26,8 @@ from models.generator import Hint
 from models.mld import MLDConfig, MLDDenoiser
 from models.motionlcm import guidance_embedding, motionlcm_latents
 from models.vae import MotionVAE
+from pipelines.config import ConfigError, load_params
+from stages import train_controlnet
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 
@@ -286,3 +290,14 @@ def test_control_config_validates_statistics_and_patch():
         ControlConfig(joints_num=J, hint_mean=[0.0] * 66, hint_std=[0.0] * 66)
     with pytest.raises(ValueError, match="patch_frames must be >= 1, got 0"):
         control_config(patch_frames=0)
+
+
+@pytest.mark.parametrize(("value", "message"), [
+    (0, "train_controlnet.encoder.patch_frames: expected an integer >= 1, got 0"),
+    (2.5, "train_controlnet.encoder.patch_frames: expected an integer, got 2.5"),
+])
+def test_stage_check_names_a_bad_patch_size_before_any_work(value, message):
+    params = load_params([f"train_controlnet.encoder.patch_frames={value}"])
+    with pytest.raises(ConfigError, match=re.escape(message)):
+        train_controlnet.check_section(params)
+    train_controlnet.check_section(load_params([]))  # the shipped params pass
