@@ -66,6 +66,13 @@ def test_paper_profile_is_mlds_published_architecture():
     assert (lcm["lr"], lcm["loop"]["batch_size"], paper["sample"]["motionlcm_guidance"]) == (2e-4, 128, 8.0)
 
 
+def test_paper_profile_keeps_motiondiffuses_optimiser():
+    """`scale=paper` is the code's Adam 2e-4, constant, clip 0.5, whatever schedule `tiny` trains with."""
+    paper = compose_params(["scale=paper"])["train_motiondiffuse"]
+    schedule = ("lr_schedule", "warmup_steps", "min_lr_ratio", "grad_clip")
+    assert (paper["lr"], *(paper["loop"][k] for k in schedule)) == (2e-4, "constant", 0, 0.0, 0.5)
+
+
 def test_dotted_override_parses_yaml_values_and_keeps_the_rest():
     params = {"data": {"on_error": "fail", "max_frames": 200}, "seed": 0}
     out = apply_overrides(params, ["data.on_error=skip", "data.max_frames=150", "seed=3"])
