@@ -57,7 +57,7 @@ Choices (each deliberate; "code" = the released MotionDiffuse code):
 5. Schedule: :func:`models.diffusion.linear_betas` with ``rescale_to_steps`` (``rescale_betas``, the
    code's ``get_named_beta_schedule``; no change at T = 1000). epsilon prediction.
 6. Sampling: DDPM with the posterior ("fixed_small") variance, as the code (the paper's text says
-   Sigma = beta_t); no x0 clipping; no classifier-free guidance (the paper trains no null caption).
+   Sigma = beta_t); no x0 clipping; no classifier-free guidance by default (item 13).
    DDIM (for the few-step evaluation row) uses the "trailing" grid (its first step is at T - 1, where
    DDPM starts) and ``set_alpha_to_one=True`` (its last step lands on the x0 prediction, where DDPM
    ends). Padded frames of the result are 0.
@@ -102,6 +102,14 @@ Choices (each deliberate; "code" = the released MotionDiffuse code):
     frames by content, so at small t, where eps is white noise on a smooth motion, the network has no
     local filter to tell the two apart and its eps estimate is no better than 0
     (``benchmarks/motiondiffuse_levels.py``); what it leaves in x0 is frame-to-frame jitter.
+13. Classifier-free guidance (ours; the paper and the code have none). Training may replace a
+    caption by the null caption with probability ``p_uncond`` (:func:`drop_captions`); sampling with
+    ``guidance`` w != 1 predicts ``eps = eps_null + w (eps_text - eps_null)`` (Ho & Salimans 2022), the
+    two passes batched (:func:`guided_text`, :func:`guided_denoise`), so NFE doubles. The null caption
+    has no frozen encoder input: ONE valid word token whose state is all zeros (:func:`null_caption`),
+    so ``Linear(E -> h)`` maps it to its bias, a learned vector. It needs no new parameters, so a
+    model trained with ``p_uncond = 0`` loads unchanged (and samples at w = 1 exactly as before).
+    The compositions (items 8-9) guide each part's or segment's prediction before combining them.
 """
 
 from __future__ import annotations
@@ -483,6 +491,57 @@ def _gen_device(generator: torch.Generator | None, fallback: torch.device) -> to
     return generator.device if generator is not None else fallback
 
 
+def null_caption(batch: int, length: int, dim: int, device: torch.device | str | None = None,
+                 dtype: torch.dtype = torch.float32) -> tuple[Tensor, Tensor]:
+    """The null caption (module docstring item 13) as word states (B, L, E) of zeros and a mask (B, L) with
+    only the first token valid. L >= 1."""
+    if length < 1:
+        raise ValueError(f"the null caption needs at least one token slot, got length {length}")
+    states = torch.zeros(batch, length, dim, device=device, dtype=dtype)
+    mask = torch.zeros(batch, length, dtype=torch.bool, device=device)
+    mask[:, 0] = True
+    return states, mask
+
+
+def drop_captions(word_states: Tensor, word_mask: Tensor, p: float,
+                  generator: torch.Generator | None = None) -> tuple[Tensor, Tensor]:
+    """Condition dropout for classifier-free guidance: each row becomes :func:`null_caption` w.p. ``p``.
+
+    One uniform per row from ``generator`` (none drawn when p <= 0, which returns the inputs).
+    """
+    if p <= 0:
+        return word_states, word_mask
+    b, length, dim = word_states.shape
+    draw = torch.rand(b, generator=generator, device=_gen_device(generator, word_states.device))
+    drop = (draw < p).to(word_states.device)
+    null_states, null_mask = null_caption(b, length, dim, word_states.device, word_states.dtype)
+    return (torch.where(drop[:, None, None], null_states, word_states),
+            torch.where(drop[:, None], null_mask, word_mask.to(word_states.device).bool()))
+
+
+def guided_text(model: MotionDiffuse, word_states: Tensor, word_mask: Tensor, guidance: float = 1.0) -> TextEncoding:
+    """The text encoding a guided sampler needs: the B captions, then (guidance != 1) B null captions."""
+    device = next(model.parameters()).device
+    word_states, word_mask = word_states.to(device), word_mask.to(device)
+    if guidance == 1.0:
+        return model.encode_text(word_states, word_mask)
+    null_states, null_mask = null_caption(*word_states.shape, device=device, dtype=word_states.dtype)
+    return model.encode_text(torch.cat([word_states, null_states]), torch.cat([word_mask.bool(), null_mask]))
+
+
+def guided_denoise(model: MotionDiffuse, x_t: Tensor, t: Tensor | int, text: TextEncoding, lengths: Tensor,
+                   guidance: float = 1.0) -> Tensor:
+    """``eps_null + guidance (eps_text - eps_null)`` (module docstring item 13) for a :func:`guided_text`
+    encoding, both passes in one batch; ``guidance == 1`` is the plain model (one pass)."""
+    if guidance == 1.0:
+        return model.denoise(x_t, t, text, lengths)
+    steps = torch.as_tensor(t, device=x_t.device).long()
+    steps = steps.expand(x_t.shape[0]) if steps.ndim == 0 else steps
+    eps = model.denoise(torch.cat([x_t, x_t]), torch.cat([steps, steps]), text, torch.cat([lengths, lengths]))
+    eps_text, eps_null = eps.chunk(2)
+    return eps_null + guidance * (eps_text - eps_null)
+
+
 def training_loss(
     model: MotionDiffuse,
     schedule: NoiseSchedule,
@@ -491,10 +550,12 @@ def training_loss(
     word_states: Tensor,
     word_mask: Tensor,
     generator: torch.Generator | None = None,
+    p_uncond: float = 0.0,
 ) -> Tensor:
     """Eq. 4, masked: ``sum_{valid (b, n, d)} (eps_theta(x_t, t, text) - eps)^2 / (valid frames * D)``.
 
-    t ~ U{0..T-1} (B,), then eps ~ N(0, I) like x0 (B, N, D), both from ``generator`` in that order;
+    t ~ U{0..T-1} (B,), then eps ~ N(0, I) like x0 (B, N, D), then (``p_uncond`` > 0) the caption
+    dropout of :func:`drop_captions`, all from ``generator`` in that order;
     ``x_t = schedule.q_sample(x0, t, eps)``. A scalar over the whole batch (the code's mean).
     """
     dev = _gen_device(generator, x0.device)
@@ -503,6 +564,7 @@ def training_loss(
     noise = torch.randn(x0.shape, generator=generator, device=dev, dtype=x0.dtype).to(x0.device)
     lengths_t = torch.as_tensor(lengths, device=x0.device).long()
     valid = lengths_to_mask(lengths_t, n)[..., None]
+    word_states, word_mask = drop_captions(word_states, word_mask, p_uncond, generator)
     pred = model(schedule.q_sample(x0, t, noise), t, word_states, word_mask, lengths_t)
     sq = torch.where(valid, (pred - noise).square(), 0.0)
     return sq.sum() / (valid.sum().to(sq.dtype) * d).clamp(min=1.0)
@@ -528,14 +590,16 @@ def sample_motiondiffuse(
     timestep_spacing: TimestepSpacing = "trailing",
     num_frames: int | None = None,
     x_T: Tensor | None = None,
+    guidance: float = 1.0,
 ) -> Tensor:
     """Text-to-motion: lengths (B,), word_states (B, L, E), word_mask (B, L) -> normalised features (B, N, D).
 
     N = ``num_frames`` or ``max(lengths)``. ``x_T ~ N(0, I)`` from ``generator`` (or ``x_T``), then
     ``method="ddpm"``: :func:`models.diffusion.ddpm_sample` over all T steps (``steps`` None or T),
     fixed_small variance; ``"ddim"``: :func:`models.diffusion.ddim_sample` with ``steps`` (default 50),
-    ``eta``, the ``timestep_spacing`` grid and ``set_alpha_to_one=True`` (module docstring item 6). The
-    text is encoded once. Padded frames are 0. Runs the model in eval mode (restored) under no_grad.
+    ``eta``, the ``timestep_spacing`` grid and ``set_alpha_to_one=True`` (module docstring item 6), with
+    classifier-free ``guidance`` (item 13; 1 = none). The text is encoded once. Padded frames are 0. Runs
+    the model in eval mode (restored) under no_grad.
     """
     cfg = model.config
     device, dtype = _model_device_dtype(model)
@@ -546,10 +610,10 @@ def sample_motiondiffuse(
         x_T = torch.randn(shape, generator=generator, device=_gen_device(generator, device), dtype=dtype)
     x_T = x_T.to(device, dtype)
     with eval_mode(model):
-        text = model.encode_text(word_states.to(device), word_mask.to(device))
+        text = guided_text(model, word_states, word_mask, guidance)
 
         def model_fn(x: Tensor, t: Tensor) -> Tensor:
-            return model.denoise(x, t, text, lengths_t)
+            return guided_denoise(model, x, t, text, lengths_t, guidance)
 
         if method == "ddpm":
             if steps is not None and steps != schedule.num_steps:
@@ -728,13 +792,15 @@ def body_part_model_fn(
     lengths: Lengths,
     *,
     lambda1: float = 0.01,
+    guidance: float = 1.0,
 ) -> ModelFn:
     """Body part-independent control (Eq. 10; module docstring item 8) as ``model_fn(x_t, t) -> eps``.
 
     ``parts``: one :class:`PartPrompt` (part, word_states (B, L, E), word_mask (B, L)) per part; the
     part masks must partition the D feature dims (a name from :data:`PART_UNIONS`, ``"rest"``, or a
     bool (D,) mask). Returns ``eps = sum_i M_i . eps_i + lambda1 grad_{x_t} sum_{i<j} ||eps_i - eps_j||^2``
-    with ``eps_i = model(x_t, t, text_i)``. One part covering every dim gives exactly the plain model.
+    with ``eps_i = model(x_t, t, text_i)`` (guided with ``guidance``, item 13). One part covering every dim
+    gives exactly the plain model.
     Raises ValueError for unknown names, overlapping or non-covering masks, or no parts.
     """
     prompts = [PartPrompt(*p) for p in parts]
@@ -743,7 +809,7 @@ def body_part_model_fn(
     device, _ = _model_device_dtype(model)
     masks = [m.to(device) for m in _resolve_part_masks([p.part for p in prompts], model.config.feature_dim)]
     with torch.no_grad():
-        texts = [model.encode_text(p.word_states.to(device), p.word_mask.to(device)) for p in prompts]
+        texts = [guided_text(model, p.word_states, p.word_mask, guidance) for p in prompts]
     lengths_t = torch.as_tensor(lengths, device=device).long()
     pairs = [(i, j, None) for i in range(len(prompts)) for j in range(i + 1, len(prompts))]
     use_grad = lambda1 != 0.0 and bool(pairs)
@@ -751,7 +817,7 @@ def body_part_model_fn(
     def model_fn(x_t: Tensor, t: Tensor) -> Tensor:
         with torch.enable_grad() if use_grad else torch.no_grad():
             x = x_t.detach().requires_grad_(True) if use_grad else x_t
-            preds = [model.denoise(x, t, text, lengths_t) for text in texts]
+            preds = [guided_denoise(model, x, t, text, lengths_t, guidance) for text in texts]
             correction = _pairwise_correction(preds, x, pairs, lambda1) if use_grad else None
         eps = torch.zeros_like(x_t)
         for mask, pred in zip(masks, preds, strict=True):
@@ -799,20 +865,22 @@ def time_varied_model_fn(
     num_frames: int,
     *,
     lambda2: float = 0.01,
+    guidance: float = 1.0,
 ) -> ModelFn:
     """Time-varied control (Eq. 11; module docstring item 9) as ``model_fn(x_t, t) -> eps`` for x_t (B, N, D).
 
-    Each segment's eps_i is the model on ``x_t[:, start:end]`` (its own sequence, length end - start)
-    zero-padded to N = ``num_frames``; ``eps = (sum_i eps'_i) / (windows covering each frame) +
-    lambda2 grad_{x_t} sum_{i<j} ||O_ij . (eps'_i - eps'_j)||^2`` with O_ij the frames windows i and j
-    share. Segments may overlap and must cover [0, N); one segment [0, N) gives exactly the plain model
-    with lengths N. Raises ValueError for out-of-range, too long (> max_len) or non-covering segments.
+    Each segment's eps_i is the model on ``x_t[:, start:end]`` (its own sequence, length end - start;
+    guided with ``guidance``, item 13) zero-padded to N = ``num_frames``; ``eps = (sum_i eps'_i) /
+    (windows covering each frame) + lambda2 grad_{x_t} sum_{i<j} ||O_ij . (eps'_i - eps'_j)||^2`` with
+    O_ij the frames windows i and j share. Segments may overlap and must cover [0, N); one segment
+    [0, N) gives exactly the plain model with lengths N. Raises ValueError for out-of-range, too long
+    (> max_len) or non-covering segments.
     """
     segs = [TimeSegment(int(s[0]), int(s[1]), s[2], s[3]) for s in segments]
     _check_segments(segs, num_frames, model.config.max_len)
     device, dtype = _model_device_dtype(model)
     with torch.no_grad():
-        texts = [model.encode_text(s.word_states.to(device), s.word_mask.to(device)) for s in segs]
+        texts = [guided_text(model, s.word_states, s.word_mask, guidance) for s in segs]
     count = torch.zeros(num_frames, device=device, dtype=dtype)
     for s in segs:
         count[s.start:s.end] += 1.0
@@ -835,7 +903,8 @@ def time_varied_model_fn(
             x = x_t.detach().requires_grad_(True) if use_grad else x_t
             padded = []
             for s, text in zip(segs, texts, strict=True):
-                pred = model.denoise(x[:, s.start:s.end], t, text, torch.full((b,), s.end - s.start, device=device))
+                pred = guided_denoise(model, x[:, s.start:s.end], t, text,
+                                      torch.full((b,), s.end - s.start, device=device), guidance)
                 padded.append(F.pad(pred, (0, 0, s.start, n - s.end)))
             correction = _pairwise_correction(padded, x, pairs, lambda2) if use_grad else None
         total = torch.zeros_like(x_t)

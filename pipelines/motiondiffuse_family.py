@@ -11,8 +11,10 @@
   :func:`models.motiondiffuse.body_part_model_fn` / :func:`~models.motiondiffuse.time_varied_model_fn`)
   with a row's sampler, for ``stages.generate --part`` / ``--segment``.
 
-Rows: ``MotionDiffuse-<T>`` (DDPM, NFE T, the paper's sampler) and ``MotionDiffuse-DDIM10`` (NFE 10).
-MotionDiffuse has no classifier-free guidance, so NFE is the number of steps. On CPU the DDPM row is
+Rows: ``MotionDiffuse-<T>`` (DDPM over T steps, the paper's sampler) and ``MotionDiffuse-DDIM10``, both
+with classifier-free guidance ``sample.motiondiffuse_guidance`` (ours, :mod:`models.motiondiffuse` item
+13; 1 = none, the paper's). NFE is the number of steps, doubled with guidance (the two passes run as one
+batched forward, but each sample is evaluated twice, as the MLD and EMDM rows count it). On CPU the DDPM row is
 too slow for the whole test set: ``sample.motiondiffuse_ddpm_items`` = K (null: no bound) makes it
 answer only the first K captions of each replication's draw, without MultiModality
 (:mod:`pipelines.evaluation`, ``eval_items``); the DDIM row always runs the full protocol.
@@ -63,7 +65,8 @@ def load_motiondiffuse(out_dir: Path, use_ema: bool = True) -> tuple[MotionDiffu
 
 
 class MotionDiffuseRow:
-    """MotionDiffuse: DDPM over all T steps (``method="ddpm"``) or DDIM with ``steps`` (eta 0, trailing grid).
+    """MotionDiffuse: DDPM over all T steps (``method="ddpm"``) or DDIM with ``steps`` (eta 0, trailing grid),
+    with classifier-free ``guidance`` (1 = none).
 
     ``eval_items``: None, or the number of each evaluation draw's captions the row answers, and
     ``eval_replications``: None (all), or how many of the replications it is evaluated in (bounds for
@@ -75,7 +78,7 @@ class MotionDiffuseRow:
 
     def __init__(self, name: str, model: MotionDiffuse, schedule: NoiseSchedule, method: SamplingMethod = "ddpm",
                  steps: int | None = None, eval_items: int | None = None,
-                 eval_replications: int | None = None) -> None:
+                 eval_replications: int | None = None, guidance: float = 1.0) -> None:
         if method == "ddpm":
             if steps not in (None, schedule.num_steps):
                 raise ValueError(f"{name}: DDPM runs all {schedule.num_steps} steps, got steps={steps}")
@@ -86,7 +89,8 @@ class MotionDiffuseRow:
         else:
             raise ValueError(f"{name}: unknown method {method!r}: ddpm | ddim")
         self.name, self.model, self.schedule = name, model.eval(), schedule
-        self.method, self.steps, self.nfe = method, int(steps), int(steps)
+        self.method, self.steps, self.guidance = method, int(steps), float(guidance)
+        self.nfe = self.steps * (2 if self.guidance != 1.0 else 1)
         self.eval_items, self.eval_replications = eval_items, eval_replications
         reps = "each replication" if eval_replications is None else f"the first {eval_replications} replication(s)"
         self.note = ("" if eval_items is None else
@@ -101,7 +105,8 @@ class MotionDiffuseRow:
                              f"with max_len={self.model.config.max_len}")
         tokens, mask = pad_tokens([np.asarray(t, np.float32) for t in text.tokens])
         out = sample_motiondiffuse(self.model, self.schedule, lengths_t, tokens, mask, method=self.method,
-                                   steps=self.steps, generator=torch.Generator().manual_seed(seed))
+                                   steps=self.steps, generator=torch.Generator().manual_seed(seed),
+                                   guidance=self.guidance)
         return out.float().cpu().numpy()
 
 
@@ -112,8 +117,10 @@ def _load(ctx: EvalContext) -> tuple[MotionDiffuse, NoiseSchedule]:
 
 def motiondiffuse_rows(ctx: EvalContext) -> list[Generator]:
     """``MotionDiffuse-<T>`` (DDPM, bounded by ``sample.motiondiffuse_ddpm_items`` and
-    ``sample.motiondiffuse_ddpm_replications``) and ``MotionDiffuse-DDIM10`` (one load)."""
+    ``sample.motiondiffuse_ddpm_replications``) and ``MotionDiffuse-DDIM10`` (one load), both with
+    ``sample.motiondiffuse_guidance``."""
     model, schedule = _load(ctx)
+    guidance = ctx.params["sample"]["motiondiffuse_guidance"]
     bounds = {}
     for key in ("motiondiffuse_ddpm_items", "motiondiffuse_ddpm_replications"):
         value = bounds[key] = ctx.params["sample"][key]
@@ -121,24 +128,24 @@ def motiondiffuse_rows(ctx: EvalContext) -> list[Generator]:
             raise ValueError(f"sample.{key}: expected null or an integer >= 1, got {value!r}")
     return [MotionDiffuseRow(f"MotionDiffuse-{schedule.num_steps}", model, schedule, "ddpm",
                              eval_items=bounds["motiondiffuse_ddpm_items"],
-                             eval_replications=bounds["motiondiffuse_ddpm_replications"]),
-            MotionDiffuseRow(f"MotionDiffuse-DDIM{DDIM_ROW_STEPS}", model, schedule, "ddim", DDIM_ROW_STEPS)]
+                             eval_replications=bounds["motiondiffuse_ddpm_replications"], guidance=guidance),
+            MotionDiffuseRow(f"MotionDiffuse-DDIM{DDIM_ROW_STEPS}", model, schedule, "ddim", DDIM_ROW_STEPS,
+                             guidance=guidance)]
 
 
 def motiondiffuse_generator(ctx: EvalContext, options: GenerateOptions) -> Generator:
     """``stages.generate --model motiondiffuse``: DDPM over all T steps (``--steps`` omitted or T), or DDIM
-    with ``--steps`` 1..T-1. No guidance: the model is trained without a null caption."""
-    if options.guidance is not None:
-        raise ValueError(f"--guidance {options.guidance}: MotionDiffuse has no classifier-free guidance "
-                         "(it is trained without a null caption)")
+    with ``--steps`` 1..T-1; ``sample.motiondiffuse_guidance`` unless ``--guidance`` says otherwise."""
+    guidance = ctx.params["sample"]["motiondiffuse_guidance"] if options.guidance is None else options.guidance
     model, schedule = _load(ctx)
     t = schedule.num_steps
     if options.steps is None or options.steps == t:
-        return MotionDiffuseRow(f"MotionDiffuse-{t}", model, schedule, "ddpm")
+        return MotionDiffuseRow(f"MotionDiffuse-{t}", model, schedule, "ddpm", guidance=guidance)
     if not 1 <= options.steps < t:
         raise ValueError(f"--steps {options.steps}: MotionDiffuse samples with DDPM over all {t} steps (omit "
                          f"--steps) or DDIM with 1..{t - 1} steps")
-    return MotionDiffuseRow(f"MotionDiffuse-DDIM{options.steps}", model, schedule, "ddim", options.steps)
+    return MotionDiffuseRow(f"MotionDiffuse-DDIM{options.steps}", model, schedule, "ddim", options.steps,
+                            guidance=guidance)
 
 
 # --------------------------------------------------------------------------------------------------
@@ -172,7 +179,7 @@ def sample_body_parts(row: MotionDiffuseRow, parts: Sequence[tuple[str, TextBatc
     the parts must partition the features. Returns (B, length, D) normalised features."""
     prompts = [(name, *_word_states(text)) for name, text in parts]
     batch = len(parts[0][1]) if parts else 0
-    model_fn = body_part_model_fn(row.model, prompts, [length] * batch, lambda1=lambda1)
+    model_fn = body_part_model_fn(row.model, prompts, [length] * batch, lambda1=lambda1, guidance=row.guidance)
     return _sample_with(row, model_fn, batch, length, seed)
 
 
@@ -182,5 +189,5 @@ def sample_time_varied(row: MotionDiffuseRow, segments: Sequence[tuple[int, int,
     captions); the segments must cover [0, length). Returns (B, length, D) normalised features."""
     windows = [(start, end, *_word_states(text)) for start, end, text in segments]
     batch = len(segments[0][2]) if segments else 0
-    model_fn = time_varied_model_fn(row.model, windows, length, lambda2=lambda2)
+    model_fn = time_varied_model_fn(row.model, windows, length, lambda2=lambda2, guidance=row.guidance)
     return _sample_with(row, model_fn, batch, length, seed)

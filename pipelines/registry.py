@@ -113,7 +113,8 @@ FAMILIES: dict[str, ModelFamily] = {family.name: family for family in (
                 description="EMDM conditioned on action labels: the action-to-motion protocol"),
     ModelFamily("motiondiffuse", "pipelines.motiondiffuse_family", "motiondiffuse_rows",
                 train_stages=("train_motiondiffuse",),
-                params=("sample.motiondiffuse_ddpm_items", "sample.motiondiffuse_ddpm_replications"),
+                params=("sample.motiondiffuse_guidance", "sample.motiondiffuse_ddpm_items",
+                        "sample.motiondiffuse_ddpm_replications"),
                 generator="motiondiffuse_generator",
                 description="MotionDiffuse: DDPM with a linear-attention transformer, 1000 steps (and DDIM 10)"),
 )}

@@ -14,7 +14,8 @@ branch reads the tokens, not the pooled embedding. All randomness (caption, wind
 the process-global torch RNG, which the runner seeds per rank and checkpoints, so a resumed run is
 bit-identical to an uninterrupted one. Writes ``artifacts/train_motiondiffuse/`` (model.pt).
 
-Section keys: ``lr``, ``ema_decay`` (0 = off), ``crop_frames`` (<= ``model.max_len``),
+Section keys: ``lr``, ``ema_decay`` (0 = off), ``p_uncond`` (the caption dropout that classifier-free
+guidance needs, ours: :mod:`models.motiondiffuse` item 13; the code: 0), ``crop_frames`` (<= ``model.max_len``),
 ``num_train_timesteps``, ``beta_start``, ``beta_end`` (linear betas, rescaled by 1000 / T as the code),
 ``model`` (the network sizes of :class:`models.motiondiffuse.MotionDiffuseConfig`; ``feature_dim`` and
 ``text_dim`` = the encoder's ``token_dim`` come from the store) and ``loop`` (the runner's).
@@ -39,7 +40,8 @@ SECTION = "train_motiondiffuse"
 #: The model's name in checkpoints (``model.pt``'s ``models`` / ``ema``).
 MODEL = "denoiser"
 #: Keys of the ``train_motiondiffuse`` params section (``loop`` is the runner's, checked by the skeleton).
-SECTION_KEYS = ("lr", "ema_decay", "crop_frames", "num_train_timesteps", "beta_start", "beta_end", "model", "loop")
+SECTION_KEYS = ("lr", "ema_decay", "p_uncond", "crop_frames", "num_train_timesteps", "beta_start", "beta_end", "model",
+                "loop")
 #: Keys of ``train_motiondiffuse.model``: the network sizes (``feature_dim``/``text_dim`` come from the store,
 #: the schedule from the section's keys above).
 MODEL_KEYS = ("width", "layers", "heads", "ff_dim", "dropout", "text_layers", "text_heads", "text_ff_dim",
@@ -60,9 +62,9 @@ def build(config: dict) -> Components:
 
 
 def step(batch: dict, ctx: StepContext) -> dict[str, torch.Tensor]:
-    """One Adam step on Eq. 4's masked epsilon MSE (t, then eps, from the global RNG)."""
+    """One Adam step on Eq. 4's masked epsilon MSE (t, eps, then the caption dropout, from the global RNG)."""
     loss = training_loss(ctx.models[MODEL], ctx.frozen["schedule"], batch["motion"], batch["length"],
-                         batch["tokens"], batch["token_mask"])
+                         batch["tokens"], batch["token_mask"], p_uncond=ctx.config["p_uncond"])
     ctx.update(loss)
     return {"loss": loss.detach()}
 
@@ -82,6 +84,7 @@ def check_section(cfg: dict[str, Any]) -> None:
         raise ValueError(f"{SECTION}: unknown key(s) {unknown}, missing key(s) {missing}")
     check_number(cfg, "lr", SECTION, low=0.0, low_open=True)
     check_number(cfg, "ema_decay", SECTION, low=0.0, high=1.0, high_open=True)
+    check_number(cfg, "p_uncond", SECTION, low=0.0, high=1.0, high_open=True)
     check_number(cfg, "crop_frames", SECTION, low=1, integer=True)
     steps = check_number(cfg, "num_train_timesteps", SECTION, low=1, integer=True)
     check_number(cfg, "beta_start", SECTION, low=0.0, low_open=True)
@@ -135,7 +138,7 @@ def stage_config(params: dict[str, Any]) -> dict[str, Any]:
     return {
         "features_dir": str(store.path), "mean": store.mean.tolist(), "std": store.std.tolist(),
         "crop_frames": cfg["crop_frames"], "max_text_tokens": int(encoder["max_length"]), "lr": float(cfg["lr"]),
-        "ema_decay": float(cfg["ema_decay"]),
+        "ema_decay": float(cfg["ema_decay"]), "p_uncond": float(cfg["p_uncond"]),
         "model": model_config(cfg, store.feature_dim, int(encoder["token_dim"])),
     }
 

@@ -66,11 +66,14 @@ def test_paper_profile_is_mlds_published_architecture():
     assert (lcm["lr"], lcm["loop"]["batch_size"], paper["sample"]["motionlcm_guidance"]) == (2e-4, 128, 8.0)
 
 
-def test_paper_profile_keeps_motiondiffuses_optimiser():
-    """`scale=paper` is the code's Adam 2e-4, constant, clip 0.5, whatever schedule `tiny` trains with."""
-    paper = compose_params(["scale=paper"])["train_motiondiffuse"]
+def test_paper_profile_keeps_motiondiffuses_optimiser_and_sampler():
+    """`scale=paper` is the code's Adam 2e-4, constant, clip 0.5, no null caption and no guidance, whatever
+    `tiny` trains and samples with."""
+    params = compose_params(["scale=paper"])
+    paper = params["train_motiondiffuse"]
     schedule = ("lr_schedule", "warmup_steps", "min_lr_ratio", "grad_clip")
     assert (paper["lr"], *(paper["loop"][k] for k in schedule)) == (2e-4, "constant", 0, 0.0, 0.5)
+    assert (paper["p_uncond"], params["sample"]["motiondiffuse_guidance"]) == (0.0, 1.0)
 
 
 def test_dotted_override_parses_yaml_values_and_keeps_the_rest():

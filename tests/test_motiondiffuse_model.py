@@ -18,8 +18,12 @@ from models.motiondiffuse import (
     StylizedFFN,
     TextEncoding,
     body_part_model_fn,
+    drop_captions,
+    guided_denoise,
+    guided_text,
     joint_feature_indices,
     linear_attention,
+    null_caption,
     part_feature_mask,
     sample_motiondiffuse,
     softmax_attention,
@@ -273,6 +277,68 @@ def test_sampling_arguments_are_validated() -> None:
         sample_motiondiffuse(model, schedule, [4, 4], ws, wm, method="ddpm", steps=10)
     with pytest.raises(ValueError, match="method"):
         sample_motiondiffuse(model, schedule, [4, 4], ws, wm, method="euler")  # type: ignore[arg-type]
+
+
+# --------------------------------------------------------------------------------------------------
+# Classifier-free guidance (ours, module docstring item 13)
+# --------------------------------------------------------------------------------------------------
+
+
+def test_drop_captions_replaces_the_drawn_rows_by_the_null_caption() -> None:
+    ws, wm = _text(b=6, valid=(3, 5, 1, 2, 4, 5))
+    assert drop_captions(ws, wm, 0.0, _gen(5)) == (ws, wm)
+    null_states, null_mask = null_caption(6, 5, E)
+    assert not null_states.any() and null_mask.tolist() == [[True, False, False, False, False]] * 6
+    assert all(torch.equal(a, b) for a, b in zip(drop_captions(ws, wm, 1.0, _gen(5)), (null_states, null_mask),
+                                                 strict=True))
+    states, mask = drop_captions(ws, wm, 0.5, _gen(5))
+    dropped = torch.rand(6, generator=_gen(5)) < 0.5
+    assert 0 < int(dropped.sum()) < 6  # this seed drops some rows and keeps others
+    for b in range(6):
+        expected = (null_states[b], null_mask[b]) if dropped[b] else (ws[b], wm[b])
+        assert torch.equal(states[b], expected[0]) and torch.equal(mask[b], expected[1])
+
+
+def test_guided_denoise_combines_the_text_and_null_passes() -> None:
+    model = _model()
+    ws, wm = _text()
+    x, t, lengths = torch.randn(2, 6, D, generator=_gen(6)), torch.tensor([3, 40]), torch.tensor([6, 4])
+    with torch.no_grad():
+        eps_text = model.denoise(x, t, model.encode_text(ws, wm), lengths)
+        eps_null = model.denoise(x, t, model.encode_text(*null_caption(2, 5, E)), lengths)
+        assert not torch.allclose(eps_text, eps_null)
+        assert torch.equal(guided_denoise(model, x, t, guided_text(model, ws, wm), lengths), eps_text)
+        for w in (0.0, 2.5):
+            guided = guided_denoise(model, x, t, guided_text(model, ws, wm, w), lengths, w)
+            expected = eps_null + w * (eps_text - eps_null)
+            torch.testing.assert_close(guided, expected, rtol=0, atol=float32_atol(expected))
+        assert not guided[1, 4:].any()  # padded frames stay 0
+
+
+def test_training_loss_with_every_caption_dropped_is_the_loss_on_the_null_caption() -> None:
+    model = _model()
+    schedule = model.config.make_schedule()
+    x0, lengths = torch.randn(2, 6, D, generator=_gen(9)), torch.tensor([6, 3])
+    ws, wm = _text()
+    with torch.no_grad():
+        dropped = training_loss(model, schedule, x0, lengths, ws, wm, _gen(10), p_uncond=1.0)
+        null = training_loss(model, schedule, x0, lengths, *null_caption(2, 5, E), _gen(10))
+        text = training_loss(model, schedule, x0, lengths, ws, wm, _gen(10))
+    assert float(dropped) == float(null)  # draw order t, eps, then the dropout: the same t and eps
+    assert float(text) != float(null)
+
+
+def test_guided_compositions_with_one_part_or_segment_equal_guided_sampling() -> None:
+    model = _model()
+    ws, wm = _text()
+    lengths = torch.tensor([6, 6])
+    plain = sample_motiondiffuse(model, model.config.make_schedule(), lengths, ws, wm, generator=_gen(14),
+                                 guidance=3.0)
+    assert not torch.allclose(plain, _plain(model, ws, wm, lengths))
+    parts = body_part_model_fn(model, [("whole", ws, wm)], lengths, lambda1=0.5, guidance=3.0)
+    segments = time_varied_model_fn(model, [(0, 6, ws, wm)], 6, lambda2=0.5, guidance=3.0)
+    for fn in (parts, segments):
+        assert torch.equal(_composed(model, fn, (2, 6, D), lengths), plain)
 
 
 # --------------------------------------------------------------------------------------------------

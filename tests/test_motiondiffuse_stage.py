@@ -50,15 +50,16 @@ LOOP = {"seed": 0, "batch_size": 8, "max_steps": 6, "grad_clip": 0.5, "lr_schedu
 
 
 def section(**overrides: Any) -> dict[str, Any]:
-    """A tiny ``train_motiondiffuse`` section (EMA on, so a resume must restore it too)."""
-    return {"lr": 2e-4, "ema_decay": 0.9, "crop_frames": 64, "num_train_timesteps": 100, "beta_start": 1e-4,
-            "beta_end": 0.02, "model": dict(TINY_MODEL), "loop": dict(LOOP)} | overrides
+    """A tiny ``train_motiondiffuse`` section (EMA and caption dropout on, so a resume must restore both)."""
+    return {"lr": 2e-4, "ema_decay": 0.9, "p_uncond": 0.25, "crop_frames": 64, "num_train_timesteps": 100,
+            "beta_start": 1e-4, "beta_end": 0.02, "model": dict(TINY_MODEL), "loop": dict(LOOP)} | overrides
 
 
 @pytest.fixture(scope="module")
 def params(small_store) -> dict[str, Any]:
     params = copy.deepcopy(small_store)
     params["train_motiondiffuse"] = section()
+    params["sample"]["motiondiffuse_guidance"] = 2.0
     params["sample"]["motiondiffuse_ddpm_items"] = 32
     params["sample"]["motiondiffuse_ddpm_replications"] = 1
     params["ray"].update(num_workers=1, cpus_per_worker=1, checkpoint_every=3, max_failures=0)
@@ -74,6 +75,8 @@ def params(small_store) -> dict[str, Any]:
     ({"lr": 0.0}, "train_motiondiffuse.lr"),
     ({"ema_decay": 1.0}, "train_motiondiffuse.ema_decay"),
     ({"ema_decay": True}, "train_motiondiffuse.ema_decay"),
+    ({"p_uncond": 1.0}, "train_motiondiffuse.p_uncond"),
+    ({"p_uncond": -0.1}, "train_motiondiffuse.p_uncond"),
     ({"crop_frames": 65}, "train_motiondiffuse.crop_frames"),
     ({"num_train_timesteps": 10.5}, "train_motiondiffuse.num_train_timesteps"),
     ({"beta_end": 1e-5}, "train_motiondiffuse.beta_end"),
@@ -120,7 +123,7 @@ def _batch() -> dict[str, torch.Tensor]:
 
 
 def test_steps_lower_the_loss_with_clipping_and_no_ema_by_default() -> None:
-    config = {"lr": 1e-3, "ema_decay": 0.0, "model": stage.model_config(section(), D, E)}
+    config = {"lr": 1e-3, "ema_decay": 0.0, "p_uncond": 0.0, "model": stage.model_config(section(), D, E)}
     comps = stage.build(config)
     assert set(comps.models) == set(comps.optimizers) == {"denoiser"} and comps.ema == {}
     assert isinstance(comps.optimizers["denoiser"], torch.optim.Adam) and comps.frozen["schedule"].num_steps == 100
@@ -404,25 +407,28 @@ def test_stage_writes_outputs_and_the_rows_sample(params, tmp_path: Path, monkey
 
     ctx = EvalContext(local, tmp_path / "artifacts", Path(local["features"]["out"]))
     ddpm, ddim = motiondiffuse_rows(ctx)
-    assert (ddpm.name, ddpm.nfe, ddpm.eval_items, ddpm.eval_replications) == ("MotionDiffuse-100", 100, 32, 1)
+    assert (ddpm.name, ddpm.nfe, ddpm.eval_items, ddpm.eval_replications) == ("MotionDiffuse-100", 200, 32, 1)
     assert "first 32 captions of the first 1 replication(s)" in ddpm.note
-    assert (ddim.name, ddim.nfe, ddim.eval_items) == ("MotionDiffuse-DDIM10", 10, None)
+    assert (ddim.name, ddim.nfe, ddim.eval_items, ddim.guidance) == ("MotionDiffuse-DDIM10", 20, None, 2.0)
     text = ctx.store.encode_prompts(["a person walks", "a person jumps"])
     x = ddim.sample(text, np.array([20, 12]), 0)
     assert x.shape == (2, 20, 263) and not x[1, 12:].any() and np.isfinite(x).all()
-    assert motiondiffuse_generator(ctx, GenerateOptions()).nfe == 100
+    assert motiondiffuse_generator(ctx, GenerateOptions()).nfe == 200  # guidance doubles the passes
+    assert motiondiffuse_generator(ctx, GenerateOptions(guidance=1.0)).nfe == 100
     assert motiondiffuse_generator(ctx, GenerateOptions(steps=100)).method == "ddpm"
     assert motiondiffuse_generator(ctx, GenerateOptions(steps=5)).name == "MotionDiffuse-DDIM5"
     with pytest.raises(ValueError, match="DDIM with 1..99 steps"):
         motiondiffuse_generator(ctx, GenerateOptions(steps=101))
-    with pytest.raises(ValueError, match="no classifier-free guidance"):
-        motiondiffuse_generator(ctx, GenerateOptions(guidance=2.0))
+    unguided = motiondiffuse_generator(ctx, GenerateOptions(steps=5, guidance=1.0)).sample(text, np.array([20, 12]), 0)
+    guided = motiondiffuse_generator(ctx, GenerateOptions(steps=5)).sample(text, np.array([20, 12]), 0)
+    assert np.isfinite(guided).all() and not np.allclose(guided, unguided)  # --guidance reaches the sampler
 
     # stages.generate --part / --segment end to end (the registry entry as it will read)
     monkeypatch.setitem(FAMILIES, "motiondiffuse", ModelFamily(
         "motiondiffuse", "pipelines.motiondiffuse_family", "motiondiffuse_rows",
         train_stages=("train_motiondiffuse",),
-        params=("sample.motiondiffuse_ddpm_items", "sample.motiondiffuse_ddpm_replications"),
+        params=("sample.motiondiffuse_guidance", "sample.motiondiffuse_ddpm_items",
+                "sample.motiondiffuse_ddpm_replications"),
         generator="motiondiffuse_generator"))
     [parts] = generate.generate(local, "motiondiffuse", [], [24], tmp_path / "parts.npy", steps=3,
                                 parts=[("upper", "a person waves"), ("lower", "a person walks")])
