@@ -42,6 +42,7 @@ from models.motiondiffuse import (
     time_varied_model_fn,
 )
 from pipelines.checkpoint import load_final_model
+from pipelines.config import check_number
 
 if TYPE_CHECKING:  # annotations only: the registry imports this module, not the reverse
     from pipelines.registry import EvalContext, GenerateOptions
@@ -110,6 +111,11 @@ class MotionDiffuseRow:
         return out.float().cpu().numpy()
 
 
+def _guidance(ctx: EvalContext) -> float:
+    """``sample.motiondiffuse_guidance``, checked (a number >= 0)."""
+    return float(check_number(ctx.params["sample"], "motiondiffuse_guidance", "sample", low=0.0))
+
+
 def _load(ctx: EvalContext) -> tuple[MotionDiffuse, NoiseSchedule]:
     model, schedule, _ = load_motiondiffuse(ctx.trained(TRAIN_STAGE))
     return model, schedule
@@ -120,7 +126,7 @@ def motiondiffuse_rows(ctx: EvalContext) -> list[Generator]:
     ``sample.motiondiffuse_ddpm_replications``) and ``MotionDiffuse-DDIM10`` (one load), both with
     ``sample.motiondiffuse_guidance``."""
     model, schedule = _load(ctx)
-    guidance = ctx.params["sample"]["motiondiffuse_guidance"]
+    guidance = _guidance(ctx)
     bounds = {}
     for key in ("motiondiffuse_ddpm_items", "motiondiffuse_ddpm_replications"):
         value = bounds[key] = ctx.params["sample"][key]
@@ -136,7 +142,7 @@ def motiondiffuse_rows(ctx: EvalContext) -> list[Generator]:
 def motiondiffuse_generator(ctx: EvalContext, options: GenerateOptions) -> Generator:
     """``stages.generate --model motiondiffuse``: DDPM over all T steps (``--steps`` omitted or T), or DDIM
     with ``--steps`` 1..T-1; ``sample.motiondiffuse_guidance`` unless ``--guidance`` says otherwise."""
-    guidance = ctx.params["sample"]["motiondiffuse_guidance"] if options.guidance is None else options.guidance
+    guidance = _guidance(ctx) if options.guidance is None else options.guidance
     model, schedule = _load(ctx)
     t = schedule.num_steps
     if options.steps is None or options.steps == t:

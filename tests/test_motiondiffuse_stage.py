@@ -441,6 +441,10 @@ def test_stage_writes_outputs_and_the_rows_sample(params, tmp_path: Path, monkey
         generate.generate(local, "motiondiffuse", [], [24], tmp_path / "x.npy", steps=3,
                           parts=[("upper", "waves"), ("arms", "waves"), ("lower", "walks")])
 
+    local["sample"]["motiondiffuse_guidance"] = -1.0
+    with pytest.raises(ValueError, match=r"sample\.motiondiffuse_guidance: expected a number >= 0"):
+        motiondiffuse_rows(ctx)
+    local["sample"]["motiondiffuse_guidance"] = 2.0
     local["sample"]["motiondiffuse_ddpm_items"] = 0
     with pytest.raises(ValueError, match="sample.motiondiffuse_ddpm_items"):
         motiondiffuse_rows(ctx)
