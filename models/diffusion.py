@@ -340,6 +340,19 @@ def sample_timesteps(
     return torch.randint(0, num_steps, (batch,), generator=generator, device=device)
 
 
+def condition_dropout(
+    batch: int, p: float, generator: torch.Generator | None = None, device: torch.device | str | None = None
+) -> Tensor:
+    """Which samples lose their condition for classifier-free guidance (Ho & Salimans 2022): (B,) bool on
+    ``device``, each True w.p. ``p``, decided by one uniform per sample drawn on the generator's device
+    (none drawn when p <= 0). MLD, EMDM and MotionDiffuse train with it."""
+    dev = torch.device(device) if device is not None else _device(generator, None)
+    if p <= 0:
+        return torch.zeros(batch, dtype=torch.bool, device=dev)
+    draw = torch.rand(batch, generator=generator, device=generator.device if generator is not None else dev)
+    return (draw < p).to(dev)
+
+
 # --------------------------------------------------------------------------------------------------
 # Sampling helpers
 # --------------------------------------------------------------------------------------------------

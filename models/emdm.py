@@ -39,8 +39,8 @@ Choices where the paper (or its code) is ambiguous or where we depart from it, e
 3. Condition dropout (Sec. 3.2, 10%): a dropped sample's condition token is a learned null token
    (zero-initialised), for text and action alike; the code zeroes the CLIP feature before the
    Linear, i.e. a fixed null token equal to that Linear's bias. Dropout is decided outside the
-   network (:func:`condition_dropout`) and passed as ``drop_cond``, so the training step owns its
-   randomness. The discriminator always sees the real condition (never dropped), as in the code.
+   network (:func:`models.diffusion.condition_dropout`) and passed as ``drop_cond``, so the training
+   step owns its randomness. The discriminator always sees the real condition (never dropped), as in the code.
 4. Discriminator: the paper's D is a 7-layer MLP over the flattened padded tensors with no masking
    (App. C.2), so padding leaks into it. Ours is a small transformer over the frames of
    ``Linear([x_t; x_{t+1}])`` plus a timestep token (DDGAN's 128-d sinusoid, dense-LeakyReLU-dense)
@@ -122,7 +122,7 @@ from torch.nn.attention import SDPBackend, sdpa_kernel
 
 from data.features import feature_groups, recover_from_ric
 from data.skeleton import SKELETONS
-from models.diffusion import cfg_combine, sample_timesteps
+from models.diffusion import cfg_combine, condition_dropout, sample_timesteps
 from models.transformer import PositionalEncoding, TransformerLayer, eval_mode, lengths_to_mask, timestep_embedding
 
 Condition = Literal["text", "action"]
@@ -430,17 +430,6 @@ def from_patches(x: Tensor, num_frames: int, patch: int) -> Tensor:
     """Patches (B, M, P C) -> frames (B, num_frames, C) (the inverse of :func:`to_patches`' layout)."""
     b, m, pc = x.shape
     return x.reshape(b, m * patch, pc // patch)[:, :num_frames]
-
-
-def condition_dropout(
-    batch: int, p: float, generator: torch.Generator | None = None, device: torch.device | str | None = None
-) -> Tensor:
-    """Which samples lose their condition for classifier-free guidance: (B,) bool, each True w.p. ``p``."""
-    dev = torch.device(device) if device is not None else _rng_device(generator, torch.device("cpu"))
-    if p <= 0:
-        return torch.zeros(batch, dtype=torch.bool, device=dev)
-    draw = torch.rand(batch, generator=generator, device=_rng_device(generator, dev))
-    return (draw < p).to(dev)
 
 
 def wiener_skip_taps(moments: Tensor, alphas_cumprod: Tensor, kernel: int) -> Tensor:

@@ -64,6 +64,7 @@ from models.diffusion import (
     PredictionType,
     TimestepSpacing,
     classifier_free_guidance,
+    condition_dropout,
     ddim_sample,
     sample_timesteps,
 )
@@ -274,8 +275,7 @@ def drop_text(
     null = torch.zeros_like(text_emb) if null is None else null.to(text_emb.device, text_emb.dtype).expand_as(text_emb)
     if p <= 0:
         return text_emb, text_mask
-    drop = torch.rand(text_emb.shape[0], generator=generator, device=_gen_device(generator, text_emb.device))
-    drop = (drop < p).to(text_emb.device)[:, None]
+    drop = condition_dropout(text_emb.shape[0], p, generator, text_emb.device)[:, None]
     return torch.where(drop, null, text_emb), None if text_mask is None else text_mask & ~drop
 
 

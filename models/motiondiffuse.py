@@ -128,6 +128,7 @@ from data.skeleton import SKELETONS
 from models.diffusion import (
     NoiseSchedule,
     TimestepSpacing,
+    condition_dropout,
     ddim_sample,
     ddpm_sample,
     linear_betas,
@@ -507,13 +508,13 @@ def drop_captions(word_states: Tensor, word_mask: Tensor, p: float,
                   generator: torch.Generator | None = None) -> tuple[Tensor, Tensor]:
     """Condition dropout for classifier-free guidance: each row becomes :func:`null_caption` w.p. ``p``.
 
-    One uniform per row from ``generator`` (none drawn when p <= 0, which returns the inputs).
+    One uniform per row from ``generator`` (:func:`models.diffusion.condition_dropout`; none drawn when
+    p <= 0, which returns the inputs).
     """
     if p <= 0:
         return word_states, word_mask
     b, length, dim = word_states.shape
-    draw = torch.rand(b, generator=generator, device=_gen_device(generator, word_states.device))
-    drop = (draw < p).to(word_states.device)
+    drop = condition_dropout(b, p, generator, word_states.device)
     null_states, null_mask = null_caption(b, length, dim, word_states.device, word_states.dtype)
     return (torch.where(drop[:, None, None], null_states, word_states),
             torch.where(drop[:, None], null_mask, word_mask.to(word_states.device).bool()))

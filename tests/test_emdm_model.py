@@ -10,13 +10,13 @@ import pytest
 import torch
 from torch import nn
 
+from models.diffusion import condition_dropout
 from models.emdm import (
     Conditioning,
     EMDMConfig,
     EMDMDiscriminator,
     EMDMGenerator,
     EMDMSchedule,
-    condition_dropout,
     d_adversarial_loss,
     discriminator_step_losses,
     from_patches,
