@@ -76,6 +76,18 @@ def test_paper_profile_keeps_motiondiffuses_optimiser_and_sampler():
     assert (paper["p_uncond"], params["sample"]["motiondiffuse_guidance"]) == (0.0, 1.0)
 
 
+def test_paper_profile_keeps_emdms_constant_rates_and_lambdas():
+    """`scale=paper` is EMDM's Adam rates, constant (its cosine never decays within training), and its
+    λ of Eq. 12 per condition, whatever schedule `tiny` trains with."""
+    params = compose_params(["scale=paper"])
+    text, action = params["train_emdm"], params["train_emdm_action"]
+    schedule = ("lr_schedule", "warmup_steps", "min_lr_ratio")
+    assert (text["lr_g"], text["lr_d"], *(text["loop"][k] for k in schedule)) == (2e-5, 1.25e-4, "constant", 0, 0.0)
+    assert (action["lr_g"], action["lr_d"], *(action["loop"][k] for k in schedule)) == (
+        3e-5, 1.25e-4, "constant", 0, 0.0)
+    assert (text["geometric_lambda"], action["geometric_lambda"], text["ema_decay"]) == (0.0, 1.0, 0.9999)
+
+
 def test_dotted_override_parses_yaml_values_and_keeps_the_rest():
     params = {"data": {"on_error": "fail", "max_frames": 200}, "seed": 0}
     out = apply_overrides(params, ["data.on_error=skip", "data.max_frames=150", "seed=3"])
