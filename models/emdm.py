@@ -99,6 +99,9 @@ Choices where the paper (or its code) is ambiguous or where we depart from it, e
    condition token, as ``models.mld`` does for MLD. Padded words are masked; a dropped condition
    (training dropout, CFG's unconditional pass) masks every word, so the memory is the null token
    alone and the unconditional model cannot read the caption. D keeps the pooled embedding only.
+   An action label has no words: an action G with ``word_tokens`` cross-attends to its label token
+   alone. Its layers then have the text G's shapes, so a trained text G can start it
+   (:func:`action_from_text`).
 12. Text normalisation (``text_norm``, ours; the paper: False): G's and D's condition tokens are
    ``Linear(LayerNorm(e))`` of the pooled embedding e (no affine), i.e. unit variance per dimension
    whatever the encoder's scale. A unit-norm sentence embedding (MiniLM's) has entries of about
@@ -285,7 +288,8 @@ class EMDMConfig:
     ``patch_frames``: frames per token of G and D (module docstring item 9; the paper: 1).
     ``d_condition``: False gives D no condition (its condition token is 0): naive DDGAN (EMDM Table D8).
     ``word_tokens``: G also cross-attends to the caption's word-token states (B, M, ``token_dim``) in
-    every layer (module docstring item 11; the paper: False, the pooled token only). ``text_norm``: G
+    every layer (module docstring item 11; the paper: False, the pooled token only); an action G to its
+    label token. ``text_norm``: G
     and D standardise the pooled text embedding before their Linear (item 12; the paper: False).
     ``input_skip``: add a learned per-step multiple of x_{t+1} to G's output (module docstring item 10);
     ``skip_kernel`` (odd; 1: that multiple) widens it to a learned per-step filter over frames.
@@ -492,7 +496,7 @@ class EMDMGenerator(nn.Module):
         self.layers = _transformer_layers(
             cfg.layers, h, cfg.heads, cfg.ff_dim, cfg.dropout, cfg.activation, cfg.norm_first, cfg.word_tokens
         )
-        self.token_proj = nn.Linear(cfg.token_dim, h) if cfg.word_tokens else None
+        self.token_proj = nn.Linear(cfg.token_dim, h) if cfg.word_tokens and cfg.condition == "text" else None
         self.frame_out = nn.Linear(h, cfg.patch_frames * cfg.feature_dim)
         self.skip = None
         if cfg.input_skip:
@@ -527,7 +531,8 @@ class EMDMGenerator(nn.Module):
         ``cond``: (B, text_dim) float for text, (B,) int for action. ``drop_cond`` (B,) bool: use the
         null condition for those samples (condition dropout in training, the unconditional pass of CFG).
         ``words``: (word-token states (B, M, token_dim), mask (B, M) bool True on real tokens), required
-        exactly when ``config.word_tokens``; a dropped sample attends to the null token alone.
+        exactly when a text G has ``config.word_tokens`` (never for action); a dropped sample attends to
+        the null token alone.
         """
         return self.denoise(x_next, t, z, lengths, self.conditioning(cond, drop_cond, words))
 
@@ -565,12 +570,18 @@ class EMDMGenerator(nn.Module):
 
     def word_memory(self, cond_token: Tensor, words: Words | None, drop_cond: Tensor | None) -> tuple[Tensor, ...]:
         """The cross-attention memory ``[cond token, Linear(words)]`` (B, 1 + M, h) and its padding mask
-        (True = ignored): padded words, and every word of a dropped sample; () without word tokens."""
-        if (words is None) == self.config.word_tokens:
-            raise ValueError("words (word-token states and mask) must be given exactly when the generator has "
-                             f"word_tokens (it has word_tokens={self.config.word_tokens})")
+        (True = ignored): padded words, and every word of a dropped sample; the cond token alone (B, 1, h)
+        for an action G; () without word tokens."""
+        text = self.config.condition == "text"
+        if (words is None) == (self.config.word_tokens and text):
+            raise ValueError("words (word-token states and mask) must be given exactly when a text generator has "
+                             f"word_tokens (this {self.config.condition} generator has word_tokens="
+                             f"{self.config.word_tokens})")
         if words is None:
-            return ()
+            if not self.config.word_tokens:
+                return ()
+            alone = cond_token.new_zeros(cond_token.shape[0], 1, dtype=torch.bool)
+            return self.pos_encoding(cond_token[:, None]), alone
         states, mask = words
         if states.shape[:2] != mask.shape or states.shape[0] != cond_token.shape[0]:
             raise ValueError(f"words: states {tuple(states.shape)} and mask {tuple(mask.shape)} do not match a "
@@ -637,6 +648,43 @@ class EMDMDiscriminator(nn.Module):
         weights = token_valid.to(tokens.dtype)[..., None]
         pooled = (tokens[:, _PREFIX_D:] * weights).sum(1) / weights.sum(1).clamp(min=1.0)
         return self.head(pooled).squeeze(-1)
+
+
+def action_from_text(action_model: nn.Module, text_state: Mapping[str, Tensor], text_config: EMDMConfig,
+                     class_captions: Sequence[Tensor]) -> None:
+    """Start an action-conditioned G or D from a trained text-conditioned one of the same sizes (ours).
+
+    Every weight but the condition embedding is copied from ``text_state`` (the text model's state dict,
+    ``text_config`` its config). Row c of the label table becomes the mean, over ``class_captions[c]``
+    (n_c, E) (the pooled embeddings of the captions of class c's training motions), of the text model's
+    condition token: given label c, the started model is the text model given c's average caption
+    token, with no words. The paper trains its action models from scratch; the warm start carries the
+    motion a text model learnt from every training motion into the smaller labelled set. A size that
+    differs is a ValueError naming the weight.
+    """
+    cfg = action_model.config
+    if cfg.condition != "action" or text_config.condition != "text":
+        raise ValueError("action_from_text starts an action model from a text model")
+    if len(class_captions) != cfg.num_actions:
+        raise ValueError(f"{len(class_captions)} caption sets for {cfg.num_actions} actions")
+    state = action_model.state_dict()
+    for key, value in state.items():
+        if key.startswith("cond_embed."):
+            continue
+        if key not in text_state or text_state[key].shape != value.shape:
+            found = tuple(text_state[key].shape) if key in text_state else "missing"
+            raise ValueError(f"{key}: the text model's is {found}, the action model's {tuple(value.shape)} "
+                             "(the two must have the same sizes)")
+        state[key] = text_state[key]
+    if action_model.cond_embed is not None:
+        text_embed = ConditionEmbedding("text", action_model.cond_embed.embed.embedding_dim, text_config.text_dim,
+                                        0, text_config.text_norm)
+        text_embed.load_state_dict({k.removeprefix("cond_embed."): v for k, v in text_state.items()
+                                    if k.startswith("cond_embed.")})
+        with torch.no_grad():
+            rows = [text_embed(captions.to(torch.float32)).mean(0) for captions in class_captions]
+        state["cond_embed.embed.weight"] = torch.stack(rows)
+    action_model.load_state_dict(state)
 
 
 # --------------------------------------------------------------------------------------------------

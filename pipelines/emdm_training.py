@@ -10,6 +10,7 @@ from dataclasses import fields
 from functools import partial
 from typing import Any
 
+import numpy as np
 import torch
 
 from data.motion_dataset import MotionTextDataset, collate_trimmed
@@ -17,16 +18,18 @@ from models.emdm import (
     EMDMConfig,
     EMDMDiscriminator,
     EMDMGenerator,
+    action_from_text,
     discriminator_step_losses,
     generator_step_losses,
     lag_moments,
     lazy_r1_scale,
     wiener_skip_taps,
 )
-from pipelines.cli import repo_path
+from pipelines.checkpoint import load_final_model
+from pipelines.cli import artifacts_dir, repo_path
 from pipelines.config import check_fields, check_number
 from pipelines.feature_store import FeatureStore
-from pipelines.recogniser import ActionClips, action_classes, missing_actions
+from pipelines.recogniser import ActionClips, action_classes, labelled_items, missing_actions
 from pipelines.runner import Components, StepContext, TrainSpec
 from pipelines.stage import TrainingStage
 
@@ -35,6 +38,12 @@ ADAM_BETAS = (0.5, 0.9)
 #: Keys of the ``train_emdm`` params section (``loop`` is the runner's, checked by the skeleton).
 SECTION_KEYS = ("condition", "num_steps", "lr_g", "lr_d", "ema_decay", "geometric_weight", "geometric_lambda",
                 "r1_gamma", "r1_interval", "p_uncond", "crop_frames", "model", "loop")
+#: The action section's one more key: ``init_from``, the text stage whose G and D start it, or null.
+ACTION_KEYS = ("init_from",)
+#: ``model`` keys that decide the networks' weight shapes: a warm start needs them equal.
+SHAPE_KEYS = ("feature_dim", "num_steps", "width", "layers", "heads", "ff_dim", "activation", "norm_first", "z_dim",
+              "mapping_layers", "d_width", "d_layers", "d_heads", "d_ff_dim", "d_time_dim", "patch_frames",
+              "d_condition", "input_skip", "skip_kernel", "word_tokens")
 #: Keys of ``train_emdm.model``: the network sizes (the rest of :class:`EMDMConfig` comes from the store
 #: and the training keys above).
 MODEL_KEYS = ("width", "layers", "heads", "ff_dim", "dropout", "activation", "norm_first", "z_dim", "mapping_layers",
@@ -54,7 +63,8 @@ def dataset(config: dict) -> MotionTextDataset | ActionClips:
 
 
 def build(config: dict) -> Components:
-    """G (its input-skip filter set to the Wiener taps of ``skip_moments`` when it has one), D, their Adams."""
+    """G (its input-skip filter set to the Wiener taps of ``skip_moments`` when it has one), D, their Adams;
+    an action stage with ``init_dir`` starts G and D from that text stage's (:func:`warm_start`)."""
     model = EMDMConfig(**config["model"])
     generator, discriminator = EMDMGenerator(model), EMDMDiscriminator(model)
     if generator.skip is not None and generator.skip.ndim == 3:
@@ -62,6 +72,8 @@ def build(config: dict) -> Components:
                                 model.skip_kernel)
         with torch.no_grad():
             generator.skip.copy_(taps)
+    if config.get("init_dir") is not None:
+        warm_start(generator, discriminator, config)
     opt_g = torch.optim.Adam(generator.parameters(), lr=config["lr_g"], betas=ADAM_BETAS)
     opt_d = torch.optim.Adam(discriminator.parameters(), lr=config["lr_d"], betas=ADAM_BETAS)
     return Components(
@@ -71,6 +83,19 @@ def build(config: dict) -> Components:
                 "std": torch.tensor(config["std"])})
 
 
+def warm_start(generator: EMDMGenerator, discriminator: EMDMDiscriminator, config: dict) -> None:
+    """Start the action G and D from the text stage in ``config["init_dir"]`` (:func:`models.emdm.action_from_text`):
+    G from its EMA weights, D from its weights; label c's rows from the captions of class c's training motions."""
+    payload = load_final_model(config["init_dir"])
+    text_config = EMDMConfig(**payload["config"]["model"])
+    items = labelled_items(FeatureStore(config["features_dir"]).split("train"), config["classes"])
+    captions = [torch.from_numpy(np.concatenate([item.text_pooled for item in items if item.action == label]))
+                for label in config["classes"]]
+    action_from_text(generator, payload["ema"].get("generator") or payload["models"]["generator"], text_config,
+                     captions)
+    action_from_text(discriminator, payload["models"]["discriminator"], text_config, captions)
+
+
 def step(batch: dict, ctx: StepContext) -> dict[str, torch.Tensor]:
     """One D update (with lazy R1 when ``ctx.step`` is due), then one G update with D frozen."""
     if ctx.world_size > 1:
@@ -78,8 +103,9 @@ def step(batch: dict, ctx: StepContext) -> dict[str, torch.Tensor]:
     generator, discriminator = ctx.models["generator"], ctx.models["discriminator"]
     schedule = ctx.frozen["schedule"]
     x0, lengths = batch["motion"], batch["length"]
-    cond = batch["label"] if generator.config.condition == "action" else batch["text"]
-    words = (batch["tokens"], batch["token_mask"]) if generator.config.word_tokens else None
+    text = generator.config.condition == "text"
+    cond = batch["text"] if text else batch["label"]
+    words = (batch["tokens"], batch["token_mask"]) if generator.config.word_tokens and text else None
 
     d = discriminator_step_losses(generator, discriminator, schedule, x0, cond, lengths, ctx.step, words=words)
     ctx.update(d["total"], "d")
@@ -109,11 +135,15 @@ def check_section(cfg: dict[str, Any], section: str = "train_emdm") -> None:
     """Validate a ``train_emdm``-like section (the ``loop`` group is the skeleton's); ValueError naming the key."""
     if not isinstance(cfg, dict):
         raise ValueError(f"{section}: expected a mapping, got {cfg!r}")
-    unknown, missing = sorted(set(cfg) - set(SECTION_KEYS)), [k for k in SECTION_KEYS if k not in cfg]
+    if cfg.get("condition") not in CONDITIONS:
+        raise ValueError(f"{section}.condition: expected one of {list(CONDITIONS)}, got {cfg.get('condition')!r}")
+    keys = SECTION_KEYS + (ACTION_KEYS if cfg["condition"] == "action" else ())
+    unknown, missing = sorted(set(cfg) - set(keys)), [k for k in keys if k not in cfg]
     if unknown or missing:
         raise ValueError(f"{section}: unknown key(s) {unknown}, missing key(s) {missing}")
-    if cfg["condition"] not in CONDITIONS:
-        raise ValueError(f"{section}.condition: expected one of {list(CONDITIONS)}, got {cfg['condition']!r}")
+    if cfg.get("init_from") is not None and (not isinstance(cfg["init_from"], str) or not cfg["init_from"]):
+        raise ValueError(f"{section}.init_from: expected the name of a text EMDM stage (train_emdm) or null, "
+                         f"got {cfg['init_from']!r}")
     check_number(cfg, "num_steps", section, low=1, integer=True)
     for key in ("lr_g", "lr_d"):
         check_number(cfg, key, section, low=0.0, low_open=True)
@@ -137,11 +167,10 @@ def check_section(cfg: dict[str, Any], section: str = "train_emdm") -> None:
 def model_config(cfg: dict[str, Any], feature_dim: int, text_dim: int, num_actions: int = 0,
                  section: str = "train_emdm", token_dim: int | None = None) -> dict[str, Any]:
     """The :class:`EMDMConfig` of a checked section, as a plain dict (sampling guidance left out: it is
-    ``sample.emdm_guidance``, a sampling setting). ``model.word_tokens`` and ``model.text_norm`` hold
-    for text only: action labels have no words (the action section shares the text section's model)."""
+    ``sample.emdm_guidance``, a sampling setting). ``model.text_norm`` holds for text only; an action G with
+    ``model.word_tokens`` cross-attends to its label token (action labels have no words)."""
     text = cfg["condition"] == "text"
-    model = {**cfg["model"], "word_tokens": cfg["model"]["word_tokens"] and text,
-             "text_norm": cfg["model"]["text_norm"] and text,
+    model = {**cfg["model"], "text_norm": cfg["model"]["text_norm"] and text,
              "feature_dim": feature_dim, "condition": cfg["condition"], "text_dim": text_dim,
              "num_actions": num_actions, "token_dim": token_dim or text_dim, "p_uncond": cfg["p_uncond"],
              "r1_gamma": cfg["r1_gamma"], "r1_interval": cfg["r1_interval"], "geo_weight": cfg["geometric_weight"],
@@ -161,7 +190,8 @@ def stage_config(params: dict[str, Any], section: str = "train_emdm") -> dict[st
     """The stage's loop-config keys: absolute paths, the dataset statistics, the model and the losses.
 
     Action conditioning adds ``classes``: the sorted labels of the training split's labelled motions
-    (the action recogniser's classes, :func:`pipelines.recogniser.action_classes`).
+    (the action recogniser's classes, :func:`pipelines.recogniser.action_classes`), and ``init_dir``
+    (:func:`warm_start_dir`).
     """
     cfg = params[section]
     check_section(cfg, section)
@@ -185,7 +215,29 @@ def stage_config(params: dict[str, Any], section: str = "train_emdm") -> dict[st
         mean, std = torch.tensor(store.mean), torch.tensor(store.std)
         motions = [(torch.from_numpy(item.features) - mean) / std for item in store.split("train")]
         out["skip_moments"] = lag_moments(motions, out["model"]["skip_kernel"]).tolist()
-    return out | ({"classes": classes} if classes else {})
+    if cfg["condition"] == "action":
+        out |= {"classes": classes, "init_dir": warm_start_dir(params, section, out["model"])}
+    return out
+
+
+def warm_start_dir(params: dict[str, Any], section: str, model: dict[str, Any]) -> str | None:
+    """The output folder of the text stage ``<section>.init_from`` names (None when null), checked to hold
+    a text EMDM with the weight shapes of ``model``; a ValueError naming the key otherwise."""
+    name = params[section]["init_from"]
+    if name is None:
+        return None
+    folder = artifacts_dir(params) / name
+    try:
+        text_model = load_final_model(folder)["config"]["model"]
+    except (OSError, KeyError, ValueError) as err:
+        raise ValueError(f"{section}.init_from: {folder} holds no trained EMDM ({err}); run that stage first") from err
+    if text_model.get("condition") != "text":
+        raise ValueError(f"{section}.init_from: {folder} holds no text-conditioned EMDM")
+    differ = [f"{key} {text_model.get(key)!r} != {model[key]!r}" for key in SHAPE_KEYS
+              if text_model.get(key) != model[key]]
+    if differ:
+        raise ValueError(f"{section}.init_from: {name}'s networks differ from this section's: {', '.join(differ)}")
+    return str(folder)
 
 
 def training_stage(section: str, module: str) -> TrainingStage:
@@ -193,7 +245,7 @@ def training_stage(section: str, module: str) -> TrainingStage:
     return TrainingStage(
         name=section, module=module, config=partial(stage_config, section=section),
         spec=TrainSpec(build=build, dataset=dataset, step=step, collate=collate_trimmed),
-        inputs=("features_dir",), params=(section, "features.out", "paths", "ray"), max_workers=1,
+        inputs=("features_dir", "init_dir"), params=(section, "features.out", "paths", "ray"), max_workers=1,
         check=lambda params: check_section(params[section], section),
         skip=lambda params: missing_actions(params) if params[section]["condition"] == "action" else None,
     )

@@ -53,7 +53,8 @@ class TrainingStage:
         spec: what to train (build, dataset, step).
         config: ``params -> the stage's own loop-config keys`` (paths absolute, sizes resolved).
         params: the params keys (dotted) the stage reads; its DVC ``params`` list, and all it is given.
-        inputs: loop-config keys holding input folders whose contents are part of the run's identity.
+        inputs: loop-config keys holding input folders whose contents are part of the run's identity
+            (an optional input's key may be missing or None: then it is not read).
         loop_group: dotted params key of the runner settings (default ``<name>.loop``).
         max_workers: the most Ray Train workers the stage can use (None: any); a larger
             ``ray.num_workers`` runs it on this many, with a note on the console.
@@ -117,7 +118,8 @@ def ray_options(stage: TrainingStage, params: dict[str, Any]) -> dict[str, Any]:
 def train(stage: TrainingStage, params: dict[str, Any], config: dict[str, Any] | None = None) -> RunResult:
     """Run ``stage`` (``config``: a ready loop config, else built from params) and write its outputs."""
     config = loop_config(stage, params) if config is None else config
-    digest = fingerprint(module_name(stage.module), [config[key] for key in stage.inputs])
+    inputs = [config[key] for key in stage.inputs if config.get(key) is not None]
+    digest = fingerprint(module_name(stage.module), inputs)
     result = run_training(stage.name, stage.spec, config, ray_options(stage, params),
                           artifacts_dir(params) / stage.name, ray_storage(params), fingerprint=digest)
     print(f"{stage.name}: final loss {result.metrics.get('loss', float('nan')):.4f} after "

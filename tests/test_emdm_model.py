@@ -17,6 +17,7 @@ from models.emdm import (
     EMDMDiscriminator,
     EMDMGenerator,
     EMDMSchedule,
+    action_from_text,
     d_adversarial_loss,
     discriminator_step_losses,
     from_patches,
@@ -494,6 +495,51 @@ def test_action_condition() -> None:
     assert disc(x, x, t, labels, [4, 3]).shape == (2,)
     with pytest.raises(ValueError, match="num_actions"):
         EMDMConfig(condition="action")
+
+
+def test_an_action_generator_with_word_tokens_cross_attends_to_its_label_alone() -> None:
+    gen, _ = _nets(condition="action", num_actions=3, word_tokens=True)
+    assert gen.token_proj is None and gen.layers[0].cross_attn is not None
+    memory, ignored = gen.word_memory(gen.condition_tokens(torch.tensor([1, 2])), None, None)
+    assert memory.shape == (2, 1, 16) and not ignored.any()
+    gen.eval()
+    x, z, t = torch.randn(2, 4, D, generator=_gen(15)), torch.randn(2, 4, generator=_gen(16)), torch.tensor([3, 3])
+    a, b = gen(x, t, z, torch.tensor([0, 0]), [4, 4]), gen(x, t, z, torch.tensor([0, 2]), [4, 4])
+    torch.testing.assert_close(a[0], b[0], rtol=0, atol=0)
+    assert not torch.allclose(a[1], b[1])  # the label steers the output
+    with pytest.raises(ValueError, match="word_tokens"):  # labels have no words
+        gen(x, t, z, torch.tensor([0, 2]), [4, 4], words=(torch.zeros(2, 3, E), torch.ones(2, 3, dtype=torch.bool)))
+
+
+def test_action_from_text_starts_the_action_model_as_the_text_model_of_each_class_captions() -> None:
+    """With one caption per class, the started action G (D) given label c is the text G (D) given that
+    caption with no words, output for output; with several, the label row is the mean of their tokens."""
+    text_g, text_d = _nets(word_tokens=True, token_dim=6, text_norm=True, input_skip=True, skip_kernel=3)
+    act_g, act_d = _nets(condition="action", num_actions=3, word_tokens=True, input_skip=True, skip_kernel=3)
+    captions = torch.randn(3, E, generator=_gen(17))
+    for action, text in ((act_g, text_g), (act_d, text_d)):
+        action_from_text(action, text.state_dict(), text.config, [captions[c : c + 1] for c in range(3)])
+    for net in (text_g, act_g, text_d, act_d):
+        net.eval()
+    x, z = torch.randn(3, 5, D, generator=_gen(18)), torch.randn(3, 4, generator=_gen(19))
+    t, labels, lengths = torch.tensor([0, 4, 9]), torch.tensor([2, 0, 1]), [5, 3, 4]
+    no_words = (torch.zeros(3, 2, 6), torch.zeros(3, 2, dtype=torch.bool))
+    torch.testing.assert_close(act_g(x, t, z, labels, lengths),
+                               text_g(x, t, z, captions[labels], lengths, words=no_words), rtol=1e-5, atol=1e-5)
+    torch.testing.assert_close(act_d(x, x.flip(1), t, labels, lengths),
+                               text_d(x, x.flip(1), t, captions[labels], lengths), rtol=1e-5, atol=1e-5)
+    two = [captions[:2], captions[1:], captions[::2]]
+    action_from_text(act_g, text_g.state_dict(), text_g.config, two)
+    torch.testing.assert_close(act_g.cond_embed.embed.weight[0], text_g.cond_embed(captions[:2]).mean(0))
+    with pytest.raises(ValueError, match="3 actions"):
+        action_from_text(act_g, text_g.state_dict(), text_g.config, two[:2])
+    wider, _ = _nets(word_tokens=True, token_dim=6, ff_dim=48, input_skip=True, skip_kernel=3)
+    with pytest.raises(ValueError, match=r"layers\.0\.ff\.0\.weight: the text model's is \(48, 16\).*\(32, 16\)"):
+        action_from_text(act_g, wider.state_dict(), wider.config, two)
+    with pytest.raises(ValueError, match="skip: the text model's is missing"):
+        action_from_text(act_g, _nets(word_tokens=True, token_dim=6)[0].state_dict(), wider.config, two)
+    with pytest.raises(ValueError, match="from a text model"):
+        action_from_text(text_g, text_g.state_dict(), text_g.config, two)
 
 
 # --------------------------------------------------------------------------------------------------

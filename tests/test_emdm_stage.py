@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import copy
 import json
+import re
 from pathlib import Path
 from typing import Any
 
@@ -47,6 +48,8 @@ def emdm_section(**overrides: Any) -> dict[str, Any]:
     section = {"condition": "text", "num_steps": 10, "lr_g": 2e-4, "lr_d": 1e-3, "ema_decay": 0.9,
                "geometric_weight": None, "geometric_lambda": 1.0, "r1_gamma": 0.02, "r1_interval": 2,
                "p_uncond": 0.1, "crop_frames": 64, "model": dict(TINY_MODEL), "loop": dict(LOOP)}
+    if overrides.get("condition") == "action":
+        section["init_from"] = None
     return section | overrides
 
 
@@ -74,11 +77,13 @@ def params(small_store) -> dict[str, Any]:
     ({"model": TINY_MODEL | {"depth": 3}}, "train_emdm.model"),
     ({"model": {k: v for k, v in TINY_MODEL.items() if k != "z_dim"}}, "train_emdm.model"),
     ({"lr": 1e-4}, "train_emdm: unknown key"),
+    ({"init_from": "train_emdm"}, "train_emdm: unknown key(s) ['init_from']"),  # text starts from scratch
+    ({"condition": "action", "init_from": 3}, "train_emdm.init_from: expected the name of a text EMDM stage"),
 ])
 def test_bad_params_name_the_key(change: dict[str, Any], key: str, tmp_path: Path) -> None:
     params = {"train_emdm": emdm_section(**change), "features": {"out": str(tmp_path / "no_store")},
               "paths": {"artifacts": str(tmp_path), "ray_storage": str(tmp_path)}, "ray": {}}
-    with pytest.raises(ValueError, match=key.replace(".", r"\.")):
+    with pytest.raises(ValueError, match=re.escape(key)):
         loop_config(train_emdm.STAGE, params)
 
 
@@ -163,7 +168,8 @@ def test_action_stage_reads_the_labelled_classes_of_the_store(params) -> None:
     section = emdm_section(condition="action", model=TINY_MODEL | {"word_tokens": True, "text_norm": True})
     action = copy.deepcopy(params) | {"train_emdm_action": section}
     config = emdm_training.stage_config(action, "train_emdm_action")
-    assert config["model"]["word_tokens"] is config["model"]["text_norm"] is False  # labels have no text
+    assert config["model"]["word_tokens"] and config["model"]["text_norm"] is False  # G cross-attends to the label
+    assert config["init_dir"] is None
     store = FeatureStore(config["features_dir"])
     assert config["classes"] == list(action_classes(store.split("train"))) and len(config["classes"]) >= 2
     assert config["model"]["num_actions"] == len(config["classes"])
@@ -293,3 +299,21 @@ def test_stage_writes_outputs_and_the_row_samples(params, tmp_path: Path) -> Non
     assert emdm_generator(ctx, GenerateOptions(steps=10)).guidance == 2.5
     with pytest.raises(ValueError, match="EMDM samples with the 10 steps"):
         emdm_generator(ctx, GenerateOptions(steps=4))
+
+    # the action stage starts from it: every weight but the label table is the text stage's
+    action = local | {"train_emdm_action": emdm_section(condition="action", init_from="train_emdm",
+                                                        model=local["train_emdm"]["model"])}
+    config = emdm_training.stage_config(action, "train_emdm_action")
+    assert config["init_dir"] == str(out)
+    comps = emdm_training.build(config)
+    sources = {"generator": payload["ema"]["generator"], "discriminator": payload["models"]["discriminator"]}
+    for name, model in comps.models.items():
+        for key, value in model.state_dict().items():
+            if key != "cond_embed.embed.weight":
+                assert torch.equal(value, sources[name][key]), (name, key)
+        assert model.cond_embed.embed.weight.shape[0] == len(config["classes"])
+    for change, message in (({"init_from": "nowhere"}, "nowhere holds no trained EMDM"),
+                            ({"model": local["train_emdm"]["model"] | {"ff_dim": 48}}, "ff_dim 32 != 48")):
+        bad = local | {"train_emdm_action": action["train_emdm_action"] | change}
+        with pytest.raises(ValueError, match=r"train_emdm_action\.init_from: .*" + message):
+            emdm_training.stage_config(bad, "train_emdm_action")
