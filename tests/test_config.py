@@ -77,8 +77,8 @@ def test_paper_profile_keeps_motiondiffuses_optimiser_and_sampler():
 
 
 def test_paper_profile_keeps_emdms_constant_rates_and_lambdas():
-    """`scale=paper` is EMDM's Adam rates, constant (its cosine never decays within training), and its
-    λ of Eq. 12 per condition, whatever schedule `tiny` trains with."""
+    """`scale=paper` is EMDM's Adam rates, constant (its cosine never decays within training), its
+    λ of Eq. 12 per condition and its action model trained from scratch, whatever `tiny` does."""
     params = compose_params(["scale=paper"])
     text, action = params["train_emdm"], params["train_emdm_action"]
     schedule = ("lr_schedule", "warmup_steps", "min_lr_ratio")
@@ -86,6 +86,8 @@ def test_paper_profile_keeps_emdms_constant_rates_and_lambdas():
     assert (action["lr_g"], action["lr_d"], *(action["loop"][k] for k in schedule)) == (
         3e-5, 1.25e-4, "constant", 0, 0.0)
     assert (text["geometric_lambda"], action["geometric_lambda"], text["ema_decay"]) == (0.0, 1.0, 0.9999)
+    assert action["init_from"] is None and action["geometric_weight"] is None  # R = 1 for action
+    assert compose_params([])["train_emdm_action"]["init_from"] == "train_emdm"
 
 
 def test_dotted_override_parses_yaml_values_and_keeps_the_rest():

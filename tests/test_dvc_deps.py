@@ -75,6 +75,15 @@ def test_every_family_has_its_evaluation_stage_with_its_training_outputs() -> No
         assert f"artifacts/eval/{family.name}" in stage["outs"]
 
 
+def test_a_warm_started_stage_depends_on_the_stage_it_starts_from() -> None:
+    params = yaml.safe_load((REPO_ROOT / "params.yaml").read_text())
+    started = {name: params[name]["init_from"] for name in DVC
+               if isinstance(params.get(name), dict) and params[name].get("init_from")}
+    assert started, "no stage of params.yaml has an init_from"
+    for name, source in started.items():
+        assert f"artifacts/{source}" in DVC[name]["deps"], f"{name} must depend on artifacts/{source}"
+
+
 def test_the_speed_stage_depends_on_the_training_outputs_of_the_families_it_times() -> None:
     from stages.speed import OUT, TIMED
 
