@@ -650,8 +650,8 @@ class EMDMDiscriminator(nn.Module):
         return self.head(pooled).squeeze(-1)
 
 
-def action_from_text(action_model: nn.Module, text_state: Mapping[str, Tensor], text_config: EMDMConfig,
-                     class_captions: Sequence[Tensor]) -> None:
+def action_from_text(action_model: EMDMGenerator | EMDMDiscriminator, text_state: Mapping[str, Tensor],
+                     text_config: EMDMConfig, class_captions: Sequence[Tensor]) -> None:
     """Start an action-conditioned G or D from a trained text-conditioned one of the same sizes (ours).
 
     Every weight but the condition embedding is copied from ``text_state`` (the text model's state dict,

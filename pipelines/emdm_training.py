@@ -40,15 +40,14 @@ SECTION_KEYS = ("condition", "num_steps", "lr_g", "lr_d", "ema_decay", "geometri
                 "r1_gamma", "r1_interval", "p_uncond", "crop_frames", "model", "loop")
 #: The action section's one more key: ``init_from``, the text stage whose G and D start it, or null.
 ACTION_KEYS = ("init_from",)
-#: ``model`` keys that decide the networks' weight shapes: a warm start needs them equal.
-SHAPE_KEYS = ("feature_dim", "num_steps", "width", "layers", "heads", "ff_dim", "activation", "norm_first", "z_dim",
-              "mapping_layers", "d_width", "d_layers", "d_heads", "d_ff_dim", "d_time_dim", "patch_frames",
-              "d_condition", "input_skip", "skip_kernel", "word_tokens")
 #: Keys of ``train_emdm.model``: the network sizes (the rest of :class:`EMDMConfig` comes from the store
 #: and the training keys above).
 MODEL_KEYS = ("width", "layers", "heads", "ff_dim", "dropout", "activation", "norm_first", "z_dim", "mapping_layers",
               "d_width", "d_layers", "d_heads", "d_ff_dim", "d_time_dim", "patch_frames", "d_condition",
               "input_skip", "skip_kernel", "word_tokens", "text_norm")
+#: Keys that decide the networks' weight shapes, which a warm start needs equal: every model key but the
+#: two that shape no weight (``dropout``, and ``text_norm``, a fixed standardisation of the embedding).
+SHAPE_KEYS = ("feature_dim", "num_steps") + tuple(k for k in MODEL_KEYS if k not in ("dropout", "text_norm"))
 CONDITIONS = ("text", "action")
 
 
