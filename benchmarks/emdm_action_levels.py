@@ -4,7 +4,7 @@
 
 The labelled test motions (one crop each, the action protocol's first draw) are noised to level k
 (k = 0..T) and denoised by the action-conditioned generator (``train_emdm_action``) from there: for
-t = k-1..0 a fresh z, the guided x0 (``sample.emdm_guidance``) and the posterior sample, the last
+t = k-1..0 a fresh z, the guided x0 (``sample.emdm_action_guidance``) and the posterior sample, the last
 step returning x0 itself, as :func:`models.emdm.sample_emdm` does from k = T. The table gives the
 action recogniser's accuracy on the result and its feature MSE to the real crops (normalised), and,
 for the lowest levels, the accuracy of the noisy x_k itself and of the generator's input skip alone
@@ -63,7 +63,7 @@ def main() -> None:
     valid = (torch.arange(draw.real.shape[1])[None] < lengths[:, None])[..., None]
     x0 = torch.where(valid, torch.from_numpy(((draw.real - mean) / std).astype(np.float32)), 0.0)
     ids = torch.as_tensor([config["classes"].index(a) for a in draw.actions])
-    guidance = float(params["sample"]["emdm_guidance"])
+    guidance = float(params["sample"]["emdm_action_guidance"])
 
     def accuracy(x: torch.Tensor) -> float:
         _, logits = recognise(recogniser, renormalise(x.numpy(), mean, std, r_mean, r_std), draw.lengths)

@@ -68,6 +68,7 @@ SHARED_KEYS: dict[str, Callable[[Mapping[str, Any], str, str], Any]] = {
     "ray.wandb_project": partial(check_type, kind=str),
     "sample.mld_guidance": partial(check_number, low=0.0),
     "sample.emdm_guidance": partial(check_number, low=0.0),
+    "sample.emdm_action_guidance": partial(check_number, low=0.0),
     "sample.motiondiffuse_guidance": partial(check_number, low=0.0),
     "sample.motiondiffuse_ddpm_items": lambda cfg, key, where: cfg[key] is None or check_number(
         cfg, key, where, low=1, integer=True),

@@ -7,7 +7,8 @@
 - :class:`EMDMActionRow`: the same sampler conditioned on action labels, behind
   :class:`pipelines.action_evaluation.ActionGenerator` (``train_emdm_action``'s generator).
 - :func:`emdm_rows`, :func:`emdm_generator`, :func:`emdm_action_rows`: the registry's entries
-  (``pipelines/registry.py``); the guidance scale is ``sample.emdm_guidance`` (EMDM's setting: 2.5).
+  (``pipelines/registry.py``); the guidance scales are ``sample.emdm_guidance`` for text and
+  ``sample.emdm_action_guidance`` for action labels (EMDM's setting: 2.5 for both).
 
 NFE counts network evaluations per sample: ``2 T`` with guidance (the two passes run as one batched
 forward, but each sample is evaluated twice, as MLD's rows count it), ``T`` at guidance 1.
@@ -92,9 +93,10 @@ class EMDMActionRow:
 
 
 def emdm_action_rows(ctx: EvalContext) -> list[EMDMActionRow]:
-    """``EMDM-action``: the action-conditioned generator of ``train_emdm_action`` with ``sample.emdm_guidance``."""
+    """``EMDM-action``: the action-conditioned generator of ``train_emdm_action`` with
+    ``sample.emdm_action_guidance``."""
     generator, schedule, config = load_emdm(ctx.trained(ACTION_STAGE))
-    return [EMDMActionRow("EMDM-action", generator, schedule, ctx.params["sample"]["emdm_guidance"],
+    return [EMDMActionRow("EMDM-action", generator, schedule, ctx.params["sample"]["emdm_action_guidance"],
                           config["classes"])]
 
 

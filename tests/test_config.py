@@ -78,7 +78,8 @@ def test_paper_profile_keeps_motiondiffuses_optimiser_and_sampler():
 
 def test_paper_profile_keeps_emdms_constant_rates_and_lambdas():
     """`scale=paper` is EMDM's Adam rates, constant (its cosine never decays within training), its
-    λ of Eq. 12 per condition and its action model trained from scratch, whatever `tiny` does."""
+    λ of Eq. 12 per condition, its action model trained from scratch and its guidance 2.5 for both,
+    whatever `tiny` does."""
     params = compose_params(["scale=paper"])
     text, action = params["train_emdm"], params["train_emdm_action"]
     schedule = ("lr_schedule", "warmup_steps", "min_lr_ratio")
@@ -87,6 +88,7 @@ def test_paper_profile_keeps_emdms_constant_rates_and_lambdas():
         3e-5, 1.25e-4, "constant", 0, 0.0)
     assert (text["geometric_lambda"], action["geometric_lambda"], text["ema_decay"]) == (0.0, 1.0, 0.9999)
     assert action["init_from"] is None and action["geometric_weight"] is None  # R = 1 for action
+    assert (params["sample"]["emdm_guidance"], params["sample"]["emdm_action_guidance"]) == (2.5, 2.5)
     assert compose_params([])["train_emdm_action"]["init_from"] == "train_emdm"
 
 

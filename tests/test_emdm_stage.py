@@ -23,7 +23,14 @@ from models.generator import Generator, TextBatch
 from pipelines import checkpoint as ckpt
 from pipelines import emdm_training
 from pipelines.action_evaluation import ActionGenerator
-from pipelines.emdm_family import EMDMActionRow, EMDMGeneratorRow, emdm_generator, emdm_rows, load_emdm
+from pipelines.emdm_family import (
+    EMDMActionRow,
+    EMDMGeneratorRow,
+    emdm_action_rows,
+    emdm_generator,
+    emdm_rows,
+    load_emdm,
+)
 from pipelines.feature_store import FeatureStore
 from pipelines.recogniser import action_classes, labelled_items
 from pipelines.registry import EvalContext, GenerateOptions
@@ -312,6 +319,16 @@ def test_stage_writes_outputs_and_the_row_samples(params, tmp_path: Path) -> Non
             if key != "cond_embed.embed.weight":
                 assert torch.equal(value, sources[name][key]), (name, key)
         assert model.cond_embed.embed.weight.shape[0] == len(config["classes"])
+    # each condition samples with its own guidance scale (sample.emdm_guidance / emdm_action_guidance)
+    (tmp_path / "train_emdm").symlink_to(out.resolve())
+    (tmp_path / "train_emdm_action").mkdir()
+    ckpt.save_final_model(tmp_path / "train_emdm_action", ckpt.final_model_payload(
+        {"models": ckpt.state_dicts(comps.models), "step": 0}, config))
+    scales = local | {"sample": local["sample"] | {"emdm_guidance": 1.25, "emdm_action_guidance": 4.0}}
+    scaled = EvalContext(scales, tmp_path, Path(local["features"]["out"]))
+    (action_row,) = emdm_action_rows(scaled)
+    assert (action_row.guidance, emdm_rows(scaled)[0].guidance) == (4.0, 1.25)
+    assert action_row.classes == tuple(config["classes"])
     for change, message in (({"init_from": "nowhere"}, "nowhere holds no trained EMDM"),
                             ({"model": local["train_emdm"]["model"] | {"ff_dim": 48}}, "ff_dim 32 != 48")):
         bad = local | {"train_emdm_action": action["train_emdm_action"] | change}
