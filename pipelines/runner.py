@@ -395,6 +395,7 @@ class _Run:
     pos: Position = field(default_factory=Position)
     history: list[dict[str, Any]] = field(default_factory=list)
     attempts: list[int] = field(default_factory=list)
+    device: str = "cpu"
 
     def state(self) -> dict[str, Any]:
         """The rank-0 part of a checkpoint."""
@@ -406,6 +407,7 @@ class _Run:
             "ema": ckpt.state_dicts(self.emas),
             "history": self.history,
             "attempts": self.attempts,
+            "device": self.device,
         }
 
     def load(self, state: Mapping[str, Any]) -> None:
@@ -644,6 +646,7 @@ def train_loop(session: Session, spec: TrainSpec, config: dict, info: RunInfo) -
         config={**config, "ray": asdict(info)}, directory=info.wandb_dir)
     _restore(run, session, s)
     run.attempts.append(run.pos.step)
+    run.device = str(session.device)
     run.models = {name: session.wrap(m) for name, m in run.raw.items()}
     ctx = StepContext(config, run.models, run.optimizers, run.emas, run.frozen, session.device,
                       session.rank, session.world_size, s.grad_clip)
@@ -770,14 +773,14 @@ def ray_connection(ray_cfg: Mapping[str, Any] | None) -> Iterator[None]:
     what it started; a stage with several runs wraps them in this so the local cluster starts
     once. Nothing happens for in-process runs (``ray.num_workers: 0`` or ``ray.local``).
     """
-    import ray
-
     opts = RayOptions.from_dict(ray_cfg)
     started = not opts.in_process and ensure_ray(opts.address, opts.runtime_env)
     try:
         yield
     finally:
         if started:
+            import ray
+
             ray.shutdown()
 
 
@@ -994,6 +997,6 @@ def run_training(stage: str, spec: TrainSpec, loop_config: Mapping[str, Any],
     else:
         state, run_path = _fit_ray(stage, spec, loop_config, opts, storage, callbacks, name)
     meta = {"stage": stage, "run_name": name, "run_path": run_path, "attempts": state["attempts"],
-            "fingerprint": fingerprint, "ray": asdict(opts), "config": dict(loop_config)}
+            "device": state["device"], "fingerprint": fingerprint, "ray": asdict(opts), "config": dict(loop_config)}
     metrics = write_outputs(Path(out_dir), stage, state, loop_config, meta, time.perf_counter() - start)
     return RunResult(name, Path(out_dir), metrics, list(state["history"]), list(state["attempts"]), run_path)

@@ -169,7 +169,9 @@ def test_outputs(reference: RunResult) -> None:
     model = build(payload["config"]).models["net"]
     model.load_state_dict(payload["models"]["net"])
     assert model.eval()(torch.zeros(2, 8)).shape == (2, 1)
-    assert payload["step"] == BASE["max_steps"] and json.loads((out / "run.json").read_text())["attempts"] == [0]
+    run_json = json.loads((out / "run.json").read_text())
+    assert payload["step"] == BASE["max_steps"] and run_json["attempts"] == [0]
+    assert run_json["device"] == "cpu"  # where it trained (a GPU run says cuda or cuda:<i>)
     assert not list(out.parent.glob(".out.*")), "temporary folders left behind"
 
 
