@@ -86,7 +86,8 @@ def test_paper_profile_keeps_emdms_constant_rates_and_lambdas():
     assert (text["lr_g"], text["lr_d"], *(text["loop"][k] for k in schedule)) == (2e-5, 1.25e-4, "constant", 0, 0.0)
     assert (action["lr_g"], action["lr_d"], *(action["loop"][k] for k in schedule)) == (
         3e-5, 1.25e-4, "constant", 0, 0.0)
-    assert (text["geometric_lambda"], action["geometric_lambda"], text["ema_decay"]) == (0.0, 1.0, 0.9999)
+    assert (text["geometric_lambda"], action["geometric_lambda"]) == (0.0, 1.0)
+    assert (text["ema_decay"], action["ema_decay"]) == (0.9999, 0.9999)
     assert action["init_from"] is None and action["geometric_weight"] is None  # R = 1 for action
     assert (params["sample"]["emdm_guidance"], params["sample"]["emdm_action_guidance"]) == (2.5, 2.5)
     assert compose_params([])["train_emdm_action"]["init_from"] == "train_emdm"
