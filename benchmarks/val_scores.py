@@ -1,6 +1,6 @@
 """A trained family's rows scored on the validation split (what sweeps rank by), without the test set.
 
-    python benchmarks/val_scores.py <family> [--rows NAME ...] [key=value ...]
+    python benchmarks/val_scores.py <family> [key=value ...] [--rows NAME] [--rows NAME ...]
 
 One replication of the evaluation protocol on the ``val`` split (:func:`pipelines.validation.
 generator_scores`): ``val_FID`` and ``val_R_precision_top3`` per row, with the evaluator of
@@ -26,12 +26,19 @@ from pipelines.registry import EvalContext, family  # noqa: E402
 from pipelines.validation import generator_scores  # noqa: E402
 
 
-def main() -> None:
+def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
+    """The family, the overrides and the rows, in any order: ``--rows`` takes one name and repeats, so an
+    override after it stays an override (with ``nargs="*"`` it was taken as a row name, silently)."""
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("family")
-    parser.add_argument("--rows", nargs="*", default=None, help="row names (default: every generator row)")
+    parser.add_argument("--rows", action="append", default=None, metavar="NAME",
+                        help="a row to score, repeatable (default: every generator row)")
     parser.add_argument("overrides", nargs="*", help="params overrides, e.g. paths.artifacts=/tmp/probe")
-    args = parser.parse_args()
+    return parser.parse_intermixed_args(argv)
+
+
+def main() -> None:
+    args = parse_args()
     params = load_params(args.overrides)
     ctx = EvalContext(params, artifacts_dir(params), repo_path(params, "features.out"))
     for row in family(args.family).build_rows(ctx):
