@@ -72,6 +72,12 @@ Choices (each deliberate; "code" = the released MotionDiffuse code):
    twice (plus zero diagonal terms). Sign as the paper: ``+``; since the sampler subtracts eps from
    x_t, this moves x_t down the disagreement's gradient. The term is exactly 0 when all parts share
    one text (identical predictions). ``lambda1 = 0.01`` (the paper's value for Fig. 5).
+   The named parts (:func:`part_feature_mask`; the paper names no dims) give each joint's root-relative
+   position and rotation dims to the joint's part, and the velocity dims of EVERY joint, with the root
+   features, to the part that holds the root. HumanML3D's joint velocity is the global velocity in the
+   root's heading frame: it carries the body's travel. Split by joint, a waving upper body's near-zero
+   velocities told the walking lower body's prediction that the body stands, and the walk shrank
+   (docs/motiondiffuse.md, "Which part owns the velocities").
 9. Time-varied (Eq. 11): each window [a_i, b_i) is run as its own sequence (positions from 0,
    length b_i - a_i <= max_len), zero-padded back to N frames. Windows may overlap (the smoothing
    term only acts where they do) and must cover all N frames: MotionDiffuse has no unconditional
@@ -698,22 +704,25 @@ def joint_feature_indices(joint: int, joints_num: int = 22) -> list[int]:
 def part_feature_mask(name: str, joints_num: int = 22) -> Tensor:
     """Bool (12J - 1,) mask of the feature dims of a named part (:data:`PART_UNIONS`), a fresh tensor.
 
-    A part owns every dim of its joints (:func:`joint_feature_indices`); a leg also owns the foot
-    contacts of its foot joints (the skeleton's ``feet``), the root part the root features. "upper"
-    and "lower" partition the 263 HumanML3D dims.
+    A part owns the root-relative position and rotation dims of its joints (:func:`joint_feature_indices`
+    less the velocities); a leg also owns the foot contacts of its foot joints (the skeleton's ``feet``).
+    The part that holds the root owns the root features and the velocity dims of EVERY joint (module
+    docstring item 8: a joint's velocity feature is its global velocity in the root's heading frame,
+    so it carries the root's travel). "upper" and "lower" partition the 263 HumanML3D dims.
     """
     if name not in PART_UNIONS:
         raise ValueError(f"unknown body part {name!r}; known: {sorted(PART_UNIONS)}")
     skeleton_name = _skeleton_for(joints_num)
     table, feet = PART_JOINTS[skeleton_name], SKELETONS[skeleton_name].feet
-    contacts = feature_groups(joints_num)["contacts"]
+    groups = feature_groups(joints_num)
     mask = torch.zeros(12 * joints_num - 1, dtype=torch.bool)
     for atom in PART_UNIONS[name]:
         for joint in table[atom]:
             mask[joint_feature_indices(joint, joints_num)] = True
             for k, foot in enumerate(feet):
                 if foot == joint:
-                    mask[contacts.start + k] = True
+                    mask[groups["contacts"].start + k] = True
+    mask[groups["vel"]] = "root" in PART_UNIONS[name]
     return mask
 
 

@@ -178,11 +178,12 @@ def _sample_with(row: MotionDiffuseRow, model_fn: ModelFn, batch: int, num_frame
     return x0.float().cpu().numpy()
 
 
-def sample_body_parts(row: MotionDiffuseRow, parts: Sequence[tuple[str, TextBatch]], length: int, seed: int,
-                      lambda1: float = 0.01) -> np.ndarray:
+def sample_body_parts(row: MotionDiffuseRow, parts: Sequence[tuple[str | torch.Tensor, TextBatch]], length: int,
+                      seed: int, lambda1: float = 0.01) -> np.ndarray:
     """Body part-independent control (Eq. 10): each part (a name of
-    :data:`models.motiondiffuse.PART_UNIONS` or "rest") with its own prompts (a TextBatch of B captions);
-    the parts must partition the features. Returns (B, length, D) normalised features."""
+    :data:`models.motiondiffuse.PART_UNIONS`, "rest", or a bool (D,) feature mask) with its own prompts (a
+    TextBatch of B captions); the parts must partition the features. Returns (B, length, D) normalised
+    features."""
     prompts = [(name, *_word_states(text)) for name, text in parts]
     batch = len(parts[0][1]) if parts else 0
     model_fn = body_part_model_fn(row.model, prompts, [length] * batch, lambda1=lambda1, guidance=row.guidance)

@@ -354,8 +354,11 @@ def test_part_masks_partition_the_features() -> None:
     assert int(sum(PART_MASKS[a].long() for a in atoms).max()) == 1 and PART_MASKS["whole"].all()
     assert not (PART_MASKS["left_arm"] & ~upper).any() and not (PART_MASKS["legs"] & ~lower).any()
     assert lower[0:4].all() and lower[259:263].all()  # root features and foot contacts are lower body
-    assert PART_MASKS["left_arm"][joint_feature_indices(20)].all()  # left wrist
-    assert joint_feature_indices(20) == [*range(61, 64), *range(181, 187), *range(253, 256)]
+    assert joint_feature_indices(20) == [*range(61, 64), *range(181, 187), *range(253, 256)]  # left wrist
+    # the wrist's position and rotation are the arm's; its velocity (global, carries the travel) the root's
+    assert PART_MASKS["left_arm"][[*range(61, 64), *range(181, 187)]].all()
+    assert not PART_MASKS["left_arm"][253:256].any() and PART_MASKS["root"][253:256].all()
+    assert PART_MASKS["root"][193:259].all() and lower[193:259].all() and not upper[193:259].any()
     assert PART_MASKS["left_leg"][[259, 260]].all() and PART_MASKS["right_leg"][[261, 262]].all()
     kit_upper, kit_lower = part_feature_mask("upper", 21), part_feature_mask("lower", 21)
     assert kit_upper.shape == (251,) and not (kit_upper & kit_lower).any() and (kit_upper | kit_lower).all()
