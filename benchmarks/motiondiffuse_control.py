@@ -31,10 +31,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from prompt_probe import eval_context, measures, probe_parser  # noqa: E402
 
-from data.features import feature_groups  # noqa: E402
 from data.render import render_strip  # noqa: E402
 from data.skeleton import HUMANML3D  # noqa: E402
-from models.motiondiffuse import PART_JOINTS, PART_UNIONS, part_feature_mask  # noqa: E402
+from models.motiondiffuse import PART_JOINTS, PART_UNIONS, joint_feature_indices, part_feature_mask  # noqa: E402
 from pipelines.motiondiffuse_family import sample_body_parts, sample_time_varied  # noqa: E402
 from pipelines.registry import GenerateOptions, family  # noqa: E402
 
@@ -51,10 +50,9 @@ def upper_mask(velocities: str) -> torch.Tensor:
     the velocity dims of its own joints (the masks before 2026-12-04)."""
     mask = part_feature_mask("upper")
     if velocities == "joint":
-        vel = feature_groups(HUMANML3D.joints_num)["vel"].start
         for atom in PART_UNIONS["upper"]:
             for joint in PART_JOINTS["humanml3d"][atom]:
-                mask[vel + 3 * joint:vel + 3 * joint + 3] = True
+                mask[joint_feature_indices(joint)] = True  # its position, rotation and velocity dims
     return mask
 
 

@@ -77,7 +77,7 @@ Choices (each deliberate; "code" = the released MotionDiffuse code):
    features, to the part that holds the root. HumanML3D's joint velocity is the global velocity in the
    root's heading frame: it carries the body's travel. Split by joint, a waving upper body's near-zero
    velocities told the walking lower body's prediction that the body stands, and the walk shrank
-   (docs/motiondiffuse.md, "Which part owns the velocities").
+   (docs/motiondiffuse.md, "Fine-grained control", 2026-12-04).
 9. Time-varied (Eq. 11): each window [a_i, b_i) is run as its own sequence (positions from 0,
    length b_i - a_i <= max_len), zero-padded back to N frames. Windows may overlap (the smoothing
    term only acts where they do) and must cover all N frames: MotionDiffuse has no unconditional

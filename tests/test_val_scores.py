@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from tests.bench_module import load_benchmark
+from bench_module import load_benchmark
 
 val_scores = load_benchmark("val_scores")
 
