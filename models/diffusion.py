@@ -2,7 +2,8 @@
 
 Sections: beta schedules; :class:`NoiseSchedule` (forward process, posterior, parameterisation
 conversions); DDPM ancestral sampling; DDIM timestep grids, steps, sampling and inversion;
-classifier-free guidance; LCM boundary scalings, DDIM-solver skip grid and multistep sampling.
+classifier-free guidance; LCM boundary scalings, DDIM-solver skip grid and multistep sampling; Wiener
+estimates of x0 or the noise from a window of frames.
 
 Conventions (the diffusers / guided-diffusion ones):
 
@@ -852,3 +853,66 @@ def lcm_multistep_sample(
             return denoised
         x = schedule.q_sample(denoised, grid[i + 1], _randn_like(denoised, generator))
     return x
+
+
+# --------------------------------------------------------------------------------------------------
+# Linear (Wiener) estimates of x0 or the noise from a window of frames (the input skips of EMDM and
+# MotionDiffuse)
+# --------------------------------------------------------------------------------------------------
+
+
+def lag_moments(motions: Sequence[Tensor], lags: int) -> Tensor:
+    """(lags, D) ``E[x[n, d] x[n + j, d]]`` for j < lags over every pair of frames within each motion (T_i, D)."""
+    sums, counts = torch.zeros(lags, motions[0].shape[-1], dtype=_F64), torch.zeros(lags, 1, dtype=_F64)
+    for x in motions:
+        x = x.double()
+        for j in range(min(lags, len(x))):
+            sums[j] += (x[: len(x) - j] * x[j:]).sum(0)
+            counts[j] += len(x) - j
+    if bool((counts == 0).any()):
+        raise ValueError(f"motions too short for {lags} lags")
+    return (sums / counts).float()
+
+
+def wiener_taps(moments: Tensor, alphas_cumprod: Tensor, kernel: int, *, target: Literal["x0", "epsilon"] = "x0",
+                eig_floor: float = 0.0) -> Tensor:
+    """Per-level, per-feature Wiener taps (T, D, k): the least-squares linear estimate of ``target`` at the
+    centre frame from a window of k frames of ``x = a x0 + s eps``.
+
+    ``moments`` (L, D), L >= k: ``m_d(j) = E[x0[n, d] x0[n + j, d]]`` of the normalised training
+    features (:func:`lag_moments`); ``alphas_cumprod`` (T,): the level ``a^2`` of each input. With R_d
+    the k x k Toeplitz matrix of m_d, C = a^2 R_d + s^2 I the window's covariance and e the centre:
+
+    - ``target="x0"``: ``C^-1 a R_d e``; uncorrelated unit-variance frames give ``a`` at the centre.
+    - ``target="epsilon"``: ``C^-1 s e`` (the noise is white, so it correlates with the centre frame
+      only); uncorrelated unit-variance frames give ``s`` at the centre.
+
+    Lag moments pooled over motions of different lengths need not form a positive semi-definite R_d
+    (the HumanML3D features' lowest eigenvalues are negative), and near the data (s -> 0) C is then
+    singular and the taps explode. ``eig_floor`` > 0 raises R_d's eigenvalues to at least
+    ``eig_floor * m_d(0)`` first, as if the data carried that much white noise of their own.
+    """
+    if kernel < 1 or kernel % 2 == 0 or moments.ndim != 2 or moments.shape[0] < kernel:
+        raise ValueError(f"need an odd kernel >= 1 and moments (L >= kernel, D); got kernel={kernel}, "
+                         f"moments {tuple(moments.shape)}")
+    if target not in ("x0", "epsilon"):
+        raise ValueError(f"target must be 'x0' or 'epsilon', got {target!r}")
+    if eig_floor < 0:
+        raise ValueError(f"eig_floor must be >= 0, got {eig_floor!r}")
+    m = moments.double()
+    lag = (torch.arange(kernel)[:, None] - torch.arange(kernel)[None]).abs()
+    r = m[lag].permute(2, 0, 1)  # (D, k, k) Toeplitz per feature
+    if eig_floor > 0:
+        values, vectors = torch.linalg.eigh(r)
+        values = torch.maximum(values, eig_floor * m[0][:, None])
+        r = vectors @ torch.diag_embed(values) @ vectors.transpose(-1, -2)
+    a = alphas_cumprod.double().sqrt()[:, None, None, None]
+    s2 = (1.0 - alphas_cumprod.double())[:, None, None, None]
+    cov = a**2 * r[None] + s2 * torch.eye(kernel, dtype=_F64)
+    if target == "x0":
+        cross = a * r[None, :, :, kernel // 2 : kernel // 2 + 1]
+    else:
+        centre = torch.zeros(kernel, 1, dtype=_F64)
+        centre[kernel // 2] = 1.0
+        cross = s2.sqrt() * centre
+    return torch.linalg.solve(cov, cross.expand(*cov.shape[:-1], 1))[..., 0].float()

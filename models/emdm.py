@@ -90,7 +90,7 @@ Choices where the paper (or its code) is ambiguous or where we depart from it, e
    neighbouring frames, ``x0_hat = G_out + sum_j s_{t,d,j} x_{t+1}[n + j - k // 2, d]`` (padded frames
    and the ends read as 0), initialised by the training recipe to the Wiener filter: the least-squares
    linear estimate of x0 from the window under the training features' lag moments
-   (:func:`wiener_skip_taps`; with uncorrelated frames it is the scalar ``sqrt(alpha_bar)`` at the
+   (:func:`models.diffusion.wiener_taps`; with uncorrelated frames it is the scalar ``sqrt(alpha_bar)`` at the
    centre). The scalar passes s_t times the noise of x_{t+1} into x0_hat, frame by frame: jitter in
    every sample, whose last step returns the level-1 estimate. Motion is smooth over neighbouring
    frames, so the window's estimate is a temporal low-pass that leaves most of that noise out.
@@ -434,43 +434,6 @@ def from_patches(x: Tensor, num_frames: int, patch: int) -> Tensor:
     """Patches (B, M, P C) -> frames (B, num_frames, C) (the inverse of :func:`to_patches`' layout)."""
     b, m, pc = x.shape
     return x.reshape(b, m * patch, pc // patch)[:, :num_frames]
-
-
-def wiener_skip_taps(moments: Tensor, alphas_cumprod: Tensor, kernel: int) -> Tensor:
-    """Per-step, per-feature Wiener taps (T, D, k) for ``skip_kernel`` k (module docstring item 10).
-
-    ``moments`` (L, D), L >= k: ``m_d(j) = E[x0[n, d] x0[n + j, d]]`` of the normalised training
-    features; ``alphas_cumprod`` (T,): the level each step's input is at. With ``x = a x0 + s eps``
-    (a = sqrt(alpha_bar), s = sqrt(1 - alpha_bar)) and R_d the k x k Toeplitz matrix of m_d, the
-    least-squares estimate of x0[n] from the window ``x[n - k//2 .. n + k//2]`` has the taps
-    ``(a^2 R_d + s^2 I)^-1 a R_d[:, k//2]``. Uncorrelated unit-variance frames give ``a`` at the centre
-    (the scalar skip), since a^2 + s^2 = 1.
-    """
-    if kernel < 1 or kernel % 2 == 0 or moments.ndim != 2 or moments.shape[0] < kernel:
-        raise ValueError(f"need an odd kernel >= 1 and moments (L >= kernel, D); got kernel={kernel}, "
-                         f"moments {tuple(moments.shape)}")
-    m = moments.double()
-    lag = (torch.arange(kernel)[:, None] - torch.arange(kernel)[None]).abs()
-    r = m[lag].permute(2, 0, 1)  # (D, k, k) Toeplitz per feature
-    a = alphas_cumprod.double().sqrt()[:, None, None, None]
-    s2 = (1.0 - alphas_cumprod.double())[:, None, None, None]
-    cov = a**2 * r[None] + s2 * torch.eye(kernel, dtype=torch.float64)
-    cross = a * r[None, :, :, kernel // 2 : kernel // 2 + 1]
-    return torch.linalg.solve(cov, cross)[..., 0].float()
-
-
-def lag_moments(motions: Sequence[Tensor], lags: int) -> Tensor:
-    """(lags, D) ``E[x[n, d] x[n + j, d]]`` for j < lags over every pair of frames within each motion (T_i, D)."""
-    sums, counts = torch.zeros(lags, motions[0].shape[-1], dtype=torch.float64), torch.zeros(lags, 1,
-                                                                                            dtype=torch.float64)
-    for x in motions:
-        x = x.double()
-        for j in range(min(lags, len(x))):
-            sums[j] += (x[: len(x) - j] * x[j:]).sum(0)
-            counts[j] += len(x) - j
-    if bool((counts == 0).any()):
-        raise ValueError(f"motions too short for {lags} lags")
-    return (sums / counts).float()
 
 
 class EMDMGenerator(nn.Module):

@@ -100,6 +100,18 @@ Choices (each deliberate; "code" = the released MotionDiffuse code):
     through the network, a small CPU width cannot, and its eps error has a floor there. The skip
     carries x_t around the network, which then models the correction. A fresh model then predicts
     the linear estimate instead of 0.
+    ``skip_kernel`` k > 1 (ours) widens the scalar into a fixed per-timestep, per-feature filter over
+    k frames, ``eps = F + sum_j w_{t,d,j} x_t[n + j - k // 2, d]``: the Wiener estimate of the noise
+    from the window (:func:`models.diffusion.wiener_taps`, ``target="epsilon"``, eigenvalue floor
+    :data:`SKIP_EIG_FLOOR`), which the training recipe sets from the training features' lag moments;
+    a fresh model holds the scalar's initial value at the centre tap. Near the data the noise is white
+    and the motion smooth over neighbouring frames, so the window tells the two apart where one frame
+    cannot, and where the network (after a CPU budget) predicts the noise no better than 0: the x0 a
+    DDPM chain ends on then keeps the noise of its last hundred steps. The window reads a sample's
+    first or last valid frame in place of frames beyond its ends (replicate padding: a motion is
+    smooth there too, zeros are not), so the output does not depend on the batch's padding. The taps
+    are a buffer, not parameters: each of the 1000 per-step filters would see a few dozen updates in
+    ``tiny``'s budget.
 12. Temporal kernel (``temporal_kernel`` k > 0, ours; the code: none, k = 0). Every FFN runs a
     depthwise convolution over frames (kernel k, zero padding, one filter per channel, initialised to
     the identity) between its first Linear and the GELU, with padded frames zeroed before it, so a
@@ -139,6 +151,7 @@ from models.diffusion import (
     ddpm_sample,
     linear_betas,
     sample_timesteps,
+    wiener_taps,
 )
 from models.transformer import TransformerLayer, eval_mode, lengths_to_mask, timestep_embedding
 
@@ -146,6 +159,8 @@ AttentionKind = Literal["linear", "softmax"]
 SamplingMethod = Literal["ddpm", "ddim"]
 Lengths = Tensor | Sequence[int]
 ModelFn = Callable[[Tensor, Tensor], Tensor]
+#: The eigenvalue floor of the input-skip filter's Wiener taps, relative to each feature's variance (item 11).
+SKIP_EIG_FLOOR = 1e-3
 
 # --------------------------------------------------------------------------------------------------
 # Configuration
@@ -164,7 +179,8 @@ class MotionDiffuseConfig:
     at width h. ``time_embed_mult``: the conditioning vector e has ``time_embed_mult * h`` dims (4).
     Schedule: ``num_train_timesteps`` T, ``beta_start``, ``beta_end``, ``rescale_betas`` (scale both
     by 1000 / T as the code). ``input_skip``: add a learned per-timestep multiple of x_t to the
-    prediction (module docstring item 11; the code: off). ``temporal_kernel``: frames of the depthwise
+    prediction (module docstring item 11; the code: off); ``skip_kernel`` (odd; 1: that multiple)
+    widens it to a fixed per-timestep Wiener filter over frames. ``temporal_kernel``: frames of the depthwise
     convolution in every FFN (item 12; 0 = none, the code).
     """
 
@@ -186,6 +202,7 @@ class MotionDiffuseConfig:
     beta_end: float = 0.02
     rescale_betas: bool = True
     input_skip: bool = False
+    skip_kernel: int = 1
     temporal_kernel: int = 0
 
     def __post_init__(self) -> None:
@@ -199,6 +216,11 @@ class MotionDiffuseConfig:
         if (isinstance(self.temporal_kernel, bool) or not isinstance(self.temporal_kernel, int)
                 or self.temporal_kernel < 0 or (self.temporal_kernel and self.temporal_kernel % 2 == 0)):
             raise ValueError(f"temporal_kernel must be 0 or an odd integer >= 1, got {self.temporal_kernel!r}")
+        if (isinstance(self.skip_kernel, bool) or not isinstance(self.skip_kernel, int) or self.skip_kernel < 1
+                or self.skip_kernel % 2 == 0):
+            raise ValueError(f"skip_kernel must be an odd integer >= 1, got {self.skip_kernel!r}")
+        if self.skip_kernel > 1 and not self.input_skip:
+            raise ValueError(f"skip_kernel {self.skip_kernel} needs input_skip: true")
         if self.width % self.heads:
             raise ValueError(f"width ({self.width}) must be divisible by heads ({self.heads})")
         if self.width % self.text_heads:
@@ -433,8 +455,23 @@ class MotionDiffuse(nn.Module):
         self.positions = nn.Parameter(torch.randn(cfg.max_len, h))
         self.layers = nn.ModuleList(DecoderLayer(cfg) for _ in range(cfg.layers))
         self.frame_out = _zero(nn.Linear(h, cfg.feature_dim))
-        self.skip = (nn.Parameter((1.0 - cfg.make_schedule().alphas_cumprod).sqrt().float()) if cfg.input_skip
-                     else None)
+        scalar = (1.0 - cfg.make_schedule().alphas_cumprod).sqrt().float()
+        self.skip = nn.Parameter(scalar) if cfg.input_skip and cfg.skip_kernel == 1 else None
+        taps = None
+        if cfg.input_skip and cfg.skip_kernel > 1:  # the scalar at the centre tap until the recipe sets the taps
+            taps = torch.zeros(cfg.num_train_timesteps, cfg.feature_dim, cfg.skip_kernel)
+            taps[:, :, cfg.skip_kernel // 2] = scalar[:, None]
+        self.skip_taps: Tensor | None
+        self.register_buffer("skip_taps", taps)
+
+    def set_skip_taps(self, moments: Tensor) -> None:
+        """Set the input-skip filter (``skip_kernel`` > 1) to the Wiener estimate of the noise under the lag
+        moments (L >= k, D) of the normalised training features (module docstring item 11)."""
+        if self.skip_taps is None:
+            raise RuntimeError("this model has no input-skip filter (needs input_skip and skip_kernel > 1)")
+        taps = wiener_taps(moments, self.config.make_schedule().alphas_cumprod, self.config.skip_kernel,
+                           target="epsilon", eig_floor=SKIP_EIG_FLOOR)
+        self.skip_taps.copy_(taps.to(self.skip_taps))
 
     def encode_text(self, word_states: Tensor, word_mask: Tensor) -> TextEncoding:
         """Frozen word-token states (B, L, text_dim), their mask (B, L) bool True = valid -> :class:`TextEncoding`."""
@@ -480,7 +517,21 @@ class MotionDiffuse(nn.Module):
         out = self.frame_out(h)
         if self.skip is not None:
             out = out + self.skip[steps].to(dtype)[:, None, None] * x_t.to(dtype)
+        if self.skip_taps is not None:
+            out = out + self.skip_filter(x_t.to(dtype), steps, lengths_t)
         return torch.where(valid[..., None], out, 0.0)
+
+    def skip_filter(self, x_t: Tensor, steps: Tensor, lengths: Tensor) -> Tensor:
+        """The input-skip filter of x_t (B, N, D) at ``steps`` (B,), frames beyond a sample's ends read as its
+        first or last valid frame (module docstring item 11)."""
+        if self.skip_taps is None:
+            raise RuntimeError("this model has no input-skip filter (needs input_skip and skip_kernel > 1)")
+        b, n, _ = x_t.shape
+        k = self.skip_taps.shape[-1]
+        frames = torch.arange(n, device=x_t.device)[:, None] + torch.arange(k, device=x_t.device)[None] - k // 2
+        frames = torch.minimum(frames[None].clamp_min(0), (lengths - 1)[:, None, None])  # (B, N, k)
+        windows = x_t[torch.arange(b, device=x_t.device)[:, None, None], frames]  # (B, N, k, D)
+        return torch.einsum("bnkd,bdk->bnd", windows, self.skip_taps.index_select(0, steps).to(x_t.dtype))
 
     def forward(self, x_t: Tensor, t: Tensor | int, word_states: Tensor, word_mask: Tensor,
                 lengths: Lengths) -> Tensor:

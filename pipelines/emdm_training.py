@@ -14,6 +14,7 @@ import numpy as np
 import torch
 
 from data.motion_dataset import MotionTextDataset, collate_trimmed
+from models.diffusion import lag_moments, wiener_taps
 from models.emdm import (
     EMDMConfig,
     EMDMDiscriminator,
@@ -21,9 +22,7 @@ from models.emdm import (
     action_from_text,
     discriminator_step_losses,
     generator_step_losses,
-    lag_moments,
     lazy_r1_scale,
-    wiener_skip_taps,
 )
 from pipelines.checkpoint import load_final_model
 from pipelines.cli import artifacts_dir, repo_path
@@ -67,8 +66,8 @@ def build(config: dict) -> Components:
     model = EMDMConfig(**config["model"])
     generator, discriminator = EMDMGenerator(model), EMDMDiscriminator(model)
     if generator.skip is not None and generator.skip.ndim == 3:
-        taps = wiener_skip_taps(torch.tensor(config["skip_moments"]), model.make_schedule().alphas_cumprod[1:],
-                                model.skip_kernel)
+        taps = wiener_taps(torch.tensor(config["skip_moments"]), model.make_schedule().alphas_cumprod[1:],
+                           model.skip_kernel)
         with torch.no_grad():
             generator.skip.copy_(taps)
     if config.get("init_dir") is not None:
@@ -211,8 +210,7 @@ def stage_config(params: dict[str, Any], section: str = "train_emdm") -> dict[st
                               int(encoder["token_dim"])),
     }
     if out["model"]["input_skip"] and out["model"]["skip_kernel"] > 1:
-        mean, std = torch.tensor(store.mean), torch.tensor(store.std)
-        motions = [(torch.from_numpy(item.features) - mean) / std for item in store.split("train")]
+        motions = [torch.from_numpy(x) for x in store.normalised_motions("train")]
         out["skip_moments"] = lag_moments(motions, out["model"]["skip_kernel"]).tolist()
     if cfg["condition"] == "action":
         out |= {"classes": classes, "init_dir": warm_start_dir(params, section, out["model"])}

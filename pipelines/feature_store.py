@@ -101,6 +101,10 @@ class FeatureStore:
             raise FileNotFoundError(f"{path}: no such split in the feature store")
         return read_split(path)
 
+    def normalised_motions(self, name: str) -> list[np.ndarray]:
+        """Each item's features (T_i, D) of split ``name``, normalised by the store's Mean/Std (float32)."""
+        return [((item.features - self.mean) / self.std).astype(np.float32) for item in self.split(name)]
+
     @cached_property
     def text_encoder(self) -> TextEncoder:
         """The frozen encoder the captions were encoded with, loaded once (None path: the packaged one)."""

@@ -29,6 +29,7 @@ from typing import Any
 import torch
 
 from data.motion_dataset import MotionTextDataset, collate_trimmed_words
+from models.diffusion import lag_moments
 from models.motiondiffuse import MotionDiffuse, MotionDiffuseConfig, training_loss
 from pipelines.cli import repo_path
 from pipelines.config import check_number
@@ -45,7 +46,7 @@ SECTION_KEYS = ("lr", "ema_decay", "p_uncond", "crop_frames", "num_train_timeste
 #: Keys of ``train_motiondiffuse.model``: the network sizes (``feature_dim``/``text_dim`` come from the store,
 #: the schedule from the section's keys above).
 MODEL_KEYS = ("width", "layers", "heads", "ff_dim", "dropout", "text_layers", "text_heads", "text_ff_dim",
-              "time_embed_mult", "max_len", "attention", "input_skip", "temporal_kernel")
+              "time_embed_mult", "max_len", "attention", "input_skip", "skip_kernel", "temporal_kernel")
 
 
 def dataset(config: dict) -> MotionTextDataset:
@@ -54,7 +55,10 @@ def dataset(config: dict) -> MotionTextDataset:
 
 
 def build(config: dict) -> Components:
+    """The model (its input-skip filter set from ``skip_moments`` when it has one), Adam, the schedule."""
     model = MotionDiffuse(config["model"])
+    if model.skip_taps is not None:
+        model.set_skip_taps(torch.tensor(config["skip_moments"]))
     optimizer = torch.optim.Adam(model.parameters(), lr=config["lr"])
     return Components(models={MODEL: model}, optimizers={MODEL: optimizer},
                       ema={MODEL: config["ema_decay"]} if config["ema_decay"] else {},
@@ -106,6 +110,10 @@ def check_section(cfg: dict[str, Any]) -> None:
     check_number(model, "dropout", f"{SECTION}.model", low=0.0, high=1.0, high_open=True)
     if not isinstance(model["input_skip"], bool):
         raise ValueError(f"{SECTION}.model.input_skip: expected true or false, got {model['input_skip']!r}")
+    check_number(model, "skip_kernel", f"{SECTION}.model", low=1, integer=True)
+    if model["skip_kernel"] % 2 == 0 or (model["skip_kernel"] > 1 and not model["input_skip"]):
+        raise ValueError(f"{SECTION}.model.skip_kernel: expected 1, or an odd number with input_skip true, got "
+                         f"{model['skip_kernel']!r} (input_skip {model['input_skip']!r})")
     if model["attention"] not in ("linear", "softmax"):
         raise ValueError(f"{SECTION}.model.attention: expected 'linear' or 'softmax', got {model['attention']!r}")
     for key in ("heads", "text_heads"):
@@ -135,12 +143,16 @@ def stage_config(params: dict[str, Any]) -> dict[str, Any]:
     check_section(cfg)
     store = FeatureStore(repo_path(params, "features.out"))
     encoder = store.text_encoder_meta
-    return {
+    out = {
         "features_dir": str(store.path), "mean": store.mean.tolist(), "std": store.std.tolist(),
         "crop_frames": cfg["crop_frames"], "max_text_tokens": int(encoder["max_length"]), "lr": float(cfg["lr"]),
         "ema_decay": float(cfg["ema_decay"]), "p_uncond": float(cfg["p_uncond"]),
         "model": model_config(cfg, store.feature_dim, int(encoder["token_dim"])),
     }
+    if out["model"]["input_skip"] and out["model"]["skip_kernel"] > 1:
+        motions = [torch.from_numpy(x) for x in store.normalised_motions("train")]
+        out["skip_moments"] = lag_moments(motions, out["model"]["skip_kernel"]).tolist()
+    return out
 
 
 STAGE = TrainingStage(

@@ -1,4 +1,4 @@
-"""Known-answer tests for models/diffusion.py (schedules, forward process, DDPM, DDIM, CFG, LCM)."""
+"""Known-answer tests for models/diffusion.py (schedules, forward process, DDPM, DDIM, CFG, LCM, Wiener taps)."""
 
 from __future__ import annotations
 
@@ -421,3 +421,77 @@ def test_lcm_multistep_renoises_with_fresh_noise() -> None:
     x1 = s.alphas_cumprod[299].sqrt() * (c1 * x_T) + (1 - s.alphas_cumprod[299]).sqrt() * z
     torch.testing.assert_close(seen[1], x1)
     torch.testing.assert_close(out, c2 * x1)
+
+
+def test_wiener_taps_known_answers() -> None:
+    alphas = torch.tensor([0.9, 0.5, 0.1], dtype=torch.float64)
+    white = torch.tensor([[1.0, 2.0], [0.0, 0.0], [0.0, 0.0]])  # uncorrelated frames, variances 1 and 2
+    taps = D.wiener_taps(white, alphas, 3)
+    a, s2 = alphas.sqrt(), 1 - alphas
+    torch.testing.assert_close(taps[:, 0, 1], a.float())  # unit variance: the scalar skip sqrt(alpha_bar)
+    torch.testing.assert_close(taps[:, 1, 1], (2 * a / (2 * alphas + s2)).float())  # variance 2: a m / (a^2 m + s^2)
+    assert torch.count_nonzero(taps[:, :, [0, 2]]) == 0
+    # a constant signal (every lag moment equal) with k = 3: by symmetry all taps equal, sum = 3 a / (3 a^2 + s^2)
+    const = D.wiener_taps(torch.ones(3, 1), alphas, 3)[:, 0]
+    torch.testing.assert_close(const, const[:, :1].expand(-1, 3))
+    torch.testing.assert_close(const.sum(1), (3 * a / (3 * alphas + s2)).float())
+    with pytest.raises(ValueError, match="odd kernel"):
+        D.wiener_taps(white, alphas, 2)
+
+
+def test_wiener_taps_are_the_least_squares_estimate_on_the_data_they_come_from() -> None:
+    g = torch.Generator().manual_seed(10)
+    smooth = torch.cumsum(torch.randn(4, 400, 3, generator=g), 1) / 10  # random walks: correlated frames
+    smooth = smooth - smooth.mean(1, keepdim=True)
+    moments = D.lag_moments(list(smooth), 3)
+    taps = D.wiener_taps(moments, torch.tensor([0.5], dtype=torch.float64), 3)[0]  # (D, 3)
+    noisy = 0.5**0.5 * smooth + 0.5**0.5 * torch.randn(smooth.shape, generator=g)
+    windows = torch.nn.functional.pad(noisy, (0, 0, 1, 1)).unfold(1, 3, 1)  # (B, N, D, 3)
+    wiener = torch.einsum("bndk,dk->bnd", windows, taps)
+    scalar = 0.5**0.5 * noisy
+    assert ((wiener - smooth) ** 2).mean() < 0.6 * ((scalar - smooth) ** 2).mean()
+
+
+def test_lag_moments_known_answer() -> None:
+    x = torch.tensor([[1.0], [2.0], [3.0]])
+    torch.testing.assert_close(D.lag_moments([x], 3), torch.tensor([[14 / 3], [8 / 2], [3 / 1]]))
+    with pytest.raises(ValueError, match="too short"):
+        D.lag_moments([x[:1]], 2)
+
+
+def test_wiener_noise_taps_known_answers() -> None:
+    alphas = torch.tensor([0.9, 0.5, 0.1], dtype=F64)
+    white = torch.tensor([[1.0, 2.0], [0.0, 0.0], [0.0, 0.0]])
+    taps = D.wiener_taps(white, alphas, 3, target="epsilon")
+    s, s2 = (1 - alphas).sqrt(), 1 - alphas
+    torch.testing.assert_close(taps[:, 0, 1], s.float())  # unit variance: the scalar skip sqrt(1 - alpha_bar)
+    torch.testing.assert_close(taps[:, 1, 1], (s / (2 * alphas + s2)).float())  # variance 2: s / (a^2 m + s^2)
+    assert torch.count_nonzero(taps[:, :, [0, 2]]) == 0
+    # the two estimates add up: x = a x0 + s eps at the centre, so a x0_taps + s eps_taps = e
+    smooth = torch.tensor([[1.0], [0.9], [0.7]])
+    x0_taps = D.wiener_taps(smooth, alphas, 3)
+    eps_taps = D.wiener_taps(smooth, alphas, 3, target="epsilon")
+    centre = torch.tensor([0.0, 1.0, 0.0]).expand(3, 1, 3)
+    torch.testing.assert_close(alphas.sqrt().float()[:, None, None] * x0_taps + s.float()[:, None, None] * eps_taps,
+                               centre)
+    with pytest.raises(ValueError, match="target"):
+        D.wiener_taps(white, alphas, 3, target="v")
+
+
+def test_wiener_eig_floor_keeps_the_taps_finite_where_the_moments_are_not_positive_definite() -> None:
+    # lag moments 1, 0.999, 0.99 make no valid autocorrelation (the 3 x 3 Toeplitz matrix has a negative
+    # eigenvalue): near the data the window's covariance is singular and the raw taps explode
+    moments = torch.tensor([[1.0], [0.999], [0.99]])
+    lag = (torch.arange(3)[:, None] - torch.arange(3)[None]).abs()
+    assert float(torch.linalg.eigvalsh(moments[lag, 0].double()).min()) < 0
+    alphas = 1 - torch.logspace(-5, -1, 50, dtype=F64)
+    raw = D.wiener_taps(moments, alphas, 3, target="epsilon")
+    floored = D.wiener_taps(moments, alphas, 3, target="epsilon", eig_floor=1e-3)
+    assert float(raw.abs().max()) > 100
+    # floored: the estimate of eps from a window of x never weighs x by more than 1 / sqrt(floor)
+    assert float(floored.abs().max()) < 1e-3 ** -0.5
+    # a floor below every eigenvalue changes nothing
+    valid = torch.tensor([[1.0], [0.5], [0.25]])
+    torch.testing.assert_close(D.wiener_taps(valid, alphas, 3, eig_floor=1e-3), D.wiener_taps(valid, alphas, 3))
+    with pytest.raises(ValueError, match="eig_floor"):
+        D.wiener_taps(moments, alphas, 3, eig_floor=-1.0)

@@ -25,13 +25,11 @@ from models.emdm import (
     generator_step_losses,
     geometric_losses,
     guided_x0,
-    lag_moments,
     lazy_r1_scale,
     q_sample_pairs,
     r1_penalty,
     sample_emdm,
     to_patches,
-    wiener_skip_taps,
 )
 from models.transformer import lengths_to_mask
 
@@ -292,42 +290,6 @@ def test_input_skip_adds_a_per_step_multiple_of_the_input_starting_at_sqrt_alpha
     torch.testing.assert_close(out[0], base[0] + 2.0 * x[0])
     torch.testing.assert_close(out[1, :4], base[1, :4] - x[1, :4])
     assert torch.equal(out[1, 4:], torch.zeros(2, D))
-
-
-def test_wiener_taps_known_answers() -> None:
-    alphas = torch.tensor([0.9, 0.5, 0.1], dtype=torch.float64)
-    white = torch.tensor([[1.0, 2.0], [0.0, 0.0], [0.0, 0.0]])  # uncorrelated frames, variances 1 and 2
-    taps = wiener_skip_taps(white, alphas, 3)
-    a, s2 = alphas.sqrt(), 1 - alphas
-    torch.testing.assert_close(taps[:, 0, 1], a.float())  # unit variance: the scalar skip sqrt(alpha_bar)
-    torch.testing.assert_close(taps[:, 1, 1], (2 * a / (2 * alphas + s2)).float())  # variance 2: a m / (a^2 m + s^2)
-    assert torch.count_nonzero(taps[:, :, [0, 2]]) == 0
-    # a constant signal (every lag moment equal) with k = 3: by symmetry all taps equal, sum = 3 a / (3 a^2 + s^2)
-    const = wiener_skip_taps(torch.ones(3, 1), alphas, 3)[:, 0]
-    torch.testing.assert_close(const, const[:, :1].expand(-1, 3))
-    torch.testing.assert_close(const.sum(1), (3 * a / (3 * alphas + s2)).float())
-    with pytest.raises(ValueError, match="odd kernel"):
-        wiener_skip_taps(white, alphas, 2)
-
-
-def test_wiener_taps_are_the_least_squares_estimate_on_the_data_they_come_from() -> None:
-    g = _gen(10)
-    smooth = torch.cumsum(torch.randn(4, 400, 3, generator=g), 1) / 10  # random walks: correlated frames
-    smooth = smooth - smooth.mean(1, keepdim=True)
-    moments = lag_moments(list(smooth), 3)
-    taps = wiener_skip_taps(moments, torch.tensor([0.5], dtype=torch.float64), 3)[0]  # (D, 3)
-    noisy = 0.5**0.5 * smooth + 0.5**0.5 * torch.randn(smooth.shape, generator=g)
-    windows = torch.nn.functional.pad(noisy, (0, 0, 1, 1)).unfold(1, 3, 1)  # (B, N, D, 3)
-    wiener = torch.einsum("bndk,dk->bnd", windows, taps)
-    scalar = 0.5**0.5 * noisy
-    assert ((wiener - smooth) ** 2).mean() < 0.6 * ((scalar - smooth) ** 2).mean()
-
-
-def test_lag_moments_known_answer() -> None:
-    x = torch.tensor([[1.0], [2.0], [3.0]])
-    torch.testing.assert_close(lag_moments([x], 3), torch.tensor([[14 / 3], [8 / 2], [3 / 1]]))
-    with pytest.raises(ValueError, match="too short"):
-        lag_moments([x[:1]], 2)
 
 
 def test_skip_kernel_starts_as_the_scalar_skip_and_filters_valid_neighbours_only() -> None:

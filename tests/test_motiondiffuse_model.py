@@ -525,3 +525,57 @@ def test_input_skip_adds_a_per_timestep_multiple_of_x_t_starting_at_the_linear_e
     torch.testing.assert_close(out[0], skipped.skip[5] * x[0])
     torch.testing.assert_close(out[1, :3], skipped.skip[45] * x[1, :3])
     assert torch.equal(out[1, 3:], torch.zeros(4, D))
+
+
+def test_skip_filter_starts_as_the_scalar_skip_and_reads_beyond_the_ends_as_the_end_frames() -> None:
+    scalar, filtered = _model(input_skip=True), _model(input_skip=True, skip_kernel=3)
+    assert filtered.skip is None and tuple(filtered.skip_taps.shape) == (50, D, 3)
+    g = _gen(4)
+    x, (words, mask) = torch.randn(2, 7, D, generator=g), _text()
+    t, lengths = torch.tensor([5, 45]), torch.tensor([7, 3])
+    with torch.no_grad():  # undo _model's perturbation of the scalar: the same weights elsewhere
+        scalar.skip.copy_((1.0 - scalar.config.make_schedule().alphas_cumprod).sqrt())
+    # a fresh filter is the scalar skip at the centre tap
+    torch.testing.assert_close(filtered(x, t, words, mask, lengths), scalar(x, t, words, mask, lengths))
+    # taps (1, 2, 3) at t = 45: frame n reads 1 x[n-1] + 2 x[n] + 3 x[n+1], the ends replicated
+    with torch.no_grad():
+        filtered.skip_taps[45] = torch.tensor([1.0, 2.0, 3.0])
+    encoded = filtered.encode_text(words, mask)
+    skip = filtered.skip_filter(x, t, lengths)
+    first, last = x[1, 0], x[1, 2]
+    torch.testing.assert_close(skip[1, 0], 3 * first + 3 * x[1, 1])
+    torch.testing.assert_close(skip[1, 2], x[1, 1] + 5 * last)
+    # the output on valid frames does not depend on the padding's values or amount
+    longer = torch.cat([x, torch.randn(2, 4, D, generator=g)], 1)
+    padded, unpadded = filtered.denoise(longer, t, encoded, lengths)[:, :7], filtered.denoise(x, t, encoded, lengths)
+    torch.testing.assert_close(padded, unpadded, atol=float32_atol(unpadded), rtol=0)
+    reloaded = MotionDiffuse(filtered.config).eval()
+    reloaded.load_state_dict(filtered.state_dict())
+    assert torch.equal(reloaded.skip_taps, filtered.skip_taps)
+
+
+def test_set_skip_taps_is_the_wiener_noise_estimate_that_beats_the_scalar_on_smooth_motion() -> None:
+    model = _model(randomise=False, input_skip=True, skip_kernel=5, num_train_timesteps=1000)
+    with pytest.raises(RuntimeError, match="no input-skip filter"):
+        _model(input_skip=True).set_skip_taps(torch.ones(5, D))
+    g = _gen(5)
+    # sinusoids of 0.5-3 cycles over 120 frames with random phases: smooth over neighbouring frames
+    cycles, phase = 0.5 + 2.5 * torch.rand(D, generator=g), 6.3 * torch.rand(4, 1, D, generator=g)
+    motion = 2**0.5 * torch.sin(2 * torch.pi * cycles * torch.arange(120)[:, None] / 120 + phase)
+    moments = torch.stack([(motion[:, : 120 - j] * motion[:, j:]).mean((0, 1)) for j in range(5)])
+    model.set_skip_taps(moments)
+    schedule, lengths = model.config.make_schedule(), torch.full((4,), 120)
+    for level in (10, 50, 200):
+        t = torch.full((4,), level)
+        noise = torch.randn(motion.shape, generator=g)
+        x_t = schedule.q_sample(motion, t, noise)
+        filtered = ((model.skip_filter(x_t, t, lengths) - noise) ** 2).mean()
+        scalar = (((1 - schedule.alphas_cumprod[level]).sqrt().float() * x_t - noise) ** 2).mean()
+        assert filtered < 0.6 * scalar, (level, float(filtered), float(scalar))
+
+
+def test_skip_kernel_must_be_odd_and_needs_the_input_skip() -> None:
+    with pytest.raises(ValueError, match="skip_kernel must be an odd"):
+        MotionDiffuseConfig(**TINY, input_skip=True, skip_kernel=4)
+    with pytest.raises(ValueError, match="needs input_skip"):
+        MotionDiffuseConfig(**TINY, skip_kernel=3)

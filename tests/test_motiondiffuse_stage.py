@@ -20,8 +20,9 @@ from state_checks import assert_same, final_state
 
 from data.skeleton import HUMANML3D
 from data.store import StoredItem
+from models.diffusion import wiener_taps
 from models.generator import Generator, TextBatch
-from models.motiondiffuse import MotionDiffuse, MotionDiffuseConfig
+from models.motiondiffuse import SKIP_EIG_FLOOR, MotionDiffuse, MotionDiffuseConfig
 from pipelines import checkpoint as ckpt
 from pipelines.evaluation import EvalConfig, evaluate, references
 from pipelines.motiondiffuse_family import (
@@ -44,7 +45,7 @@ FIXTURES = Path(__file__).parent / "fixtures" / "humanml3d"
 D, E = 263, 8
 TINY_MODEL = {"width": 16, "layers": 1, "heads": 2, "ff_dim": 32, "dropout": 0.0, "text_layers": 1, "text_heads": 2,
               "text_ff_dim": 32, "time_embed_mult": 2, "max_len": 64, "attention": "linear", "input_skip": False,
-              "temporal_kernel": 0}
+              "skip_kernel": 1, "temporal_kernel": 0}
 LOOP = {"seed": 0, "batch_size": 8, "max_steps": 6, "grad_clip": 0.5, "lr_schedule": "constant", "warmup_steps": 0,
         "min_lr_ratio": 0.0, "log_every": 3, "num_data_workers": 0, "length_buckets": 0}
 
@@ -58,7 +59,7 @@ def section(**overrides: Any) -> dict[str, Any]:
 @pytest.fixture(scope="module")
 def params(small_store) -> dict[str, Any]:
     params = copy.deepcopy(small_store)
-    params["train_motiondiffuse"] = section()
+    params["train_motiondiffuse"] = section(model=TINY_MODEL | {"input_skip": True, "skip_kernel": 3})
     params["sample"]["motiondiffuse_guidance"] = 2.0
     params["sample"]["motiondiffuse_ddpm_items"] = 32
     params["sample"]["motiondiffuse_ddpm_replications"] = 1
@@ -85,6 +86,8 @@ def params(small_store) -> dict[str, Any]:
     ({"model": TINY_MODEL | {"heads": 3}}, "train_motiondiffuse.model.heads"),
     ({"model": TINY_MODEL | {"text_layers": -1}}, "train_motiondiffuse.model.text_layers"),
     ({"model": TINY_MODEL | {"dropout": 1.0}}, "train_motiondiffuse.model.dropout"),
+    ({"model": TINY_MODEL | {"input_skip": True, "skip_kernel": 4}}, "train_motiondiffuse.model.skip_kernel"),
+    ({"model": TINY_MODEL | {"skip_kernel": 3}}, "train_motiondiffuse.model.skip_kernel"),
     ({"model": TINY_MODEL | {"feature_dim": 10}}, "train_motiondiffuse.model: unknown key"),
     ({"model": {k: v for k, v in TINY_MODEL.items() if k != "width"}}, "train_motiondiffuse.model: .*missing key"),
     ({"lr_g": 1e-4}, "train_motiondiffuse: unknown key"),
@@ -401,6 +404,10 @@ def test_stage_writes_outputs_and_the_rows_sample(params, tmp_path: Path, monkey
     assert json.loads((out / "metrics.json").read_text())["step"] == 6
     model, schedule, config = load_motiondiffuse(out)
     assert schedule.num_steps == 100 and not model.training and config["model"]["text_dim"] == 384
+    # the recipe set the skip filter from the training features' lag moments, and model.pt kept it
+    expected = wiener_taps(torch.tensor(config["skip_moments"]), schedule.alphas_cumprod, 3, target="epsilon",
+                           eig_floor=SKIP_EIG_FLOOR)
+    assert torch.equal(model.skip_taps, expected) and bool(model.skip_taps[:, :, 0].any())
     payload = ckpt.load_final_model(out)
     for key, value in model.state_dict().items():  # the EMA weights
         assert torch.equal(value, payload["ema"]["denoiser"][key]), key
