@@ -14,7 +14,9 @@ runs and end-to-end stage runs (each over ~1 s on the 2-core machine); ``pytest`
 from __future__ import annotations
 
 import os
+import signal
 from collections.abc import Iterator
+from pathlib import Path
 
 import pytest
 
@@ -66,13 +68,43 @@ def ray_cluster() -> Iterator[object]:
     if ray.is_initialized():
         ray.shutdown()
     cluster = Cluster(initialize_head=True, connect=True, head_node_args={"num_cpus": CPUS_PER_NODE})
+    raylets: set[int] = set()
     try:
         cluster.add_node(num_cpus=CPUS_PER_NODE)
         cluster.wait_for_nodes()
+        raylets = {info.process.pid for node in cluster.list_all_nodes()
+                   for info in node.all_processes.get("raylet", [])}
         yield cluster
     finally:
         ray.shutdown()
         cluster.shutdown()
+        reap_ray_workers(raylets)
+
+
+def reap_ray_workers(raylets: set[int]) -> list[int]:
+    """Kill the processes that a raylet of ``raylets`` started and that outlived the cluster's shutdown; their PIDs.
+
+    Ray's workers exit when their raylet dies, but once (CI, 2026-12-04) a ``ray::TrainController`` worker
+    stayed asleep, reparented to init, after the session's cluster had shut down. A worker carries its
+    raylet's PID in ``RAY_RAYLET_PID``; only this session's workers match, never another Ray on the machine.
+    Linux only (``/proc``); elsewhere a no-op.
+    """
+    killed = []
+    for entry in Path("/proc").glob("[0-9]*"):
+        if entry.name == str(os.getpid()):
+            continue
+        try:
+            env = (entry / "environ").read_bytes().split(b"\0")
+        except OSError:
+            continue
+        if any(item.startswith(b"RAY_RAYLET_PID=") and item[15:].isdigit() and int(item[15:]) in raylets
+               for item in env):
+            try:
+                os.kill(int(entry.name), signal.SIGKILL)
+                killed.append(int(entry.name))
+            except OSError:
+                continue
+    return killed
 
 
 FIXTURE_JOINTS = os.path.join(os.path.dirname(__file__), "fixtures", "humanml3d", "new_joints_012314.npy")
