@@ -35,6 +35,12 @@ from pipelines.config import (
     restrict_params,
 )
 
+
+def _null_or_count(section: Mapping[str, Any], key: str, where: str) -> object:
+    """null, or an integer >= 1 (a bound such as a number of items or a batch size)."""
+    return section[key] is None or check_number(section, key, where, low=1, integer=True)
+
+
 #: Checks of the sections several stages share, one per dotted key: ``check(section, key, where)``
 #: raises a ConfigError naming the key, its value and what is allowed. A stage's own section is
 #: checked by the stage (the ``checks`` of :func:`run_main`).
@@ -70,10 +76,9 @@ SHARED_KEYS: dict[str, Callable[[Mapping[str, Any], str, str], Any]] = {
     "sample.emdm_guidance": partial(check_number, low=0.0),
     "sample.emdm_action_guidance": partial(check_number, low=0.0),
     "sample.motiondiffuse_guidance": partial(check_number, low=0.0),
-    "sample.motiondiffuse_ddpm_items": lambda cfg, key, where: cfg[key] is None or check_number(
-        cfg, key, where, low=1, integer=True),
-    "sample.motiondiffuse_ddpm_replications": lambda cfg, key, where: cfg[key] is None or check_number(
-        cfg, key, where, low=1, integer=True),
+    "sample.motiondiffuse_ddpm_items": _null_or_count,
+    "sample.motiondiffuse_ddpm_replications": _null_or_count,
+    "sample.motion_batch": _null_or_count,
     "sample.motionlcm_guidance": partial(check_number, low=1.0),
     "sample.control_refine_steps": partial(check_number, low=0, integer=True),
     "sample.control_refine_lr": partial(check_number, low=0.0, low_open=True),

@@ -27,6 +27,7 @@ from data.motion_dataset import pad_tokens
 from models.emdm import EMDMConfig, EMDMGenerator, EMDMSchedule, sample_emdm
 from models.generator import Generator, TextBatch
 from pipelines.checkpoint import load_final_model
+from pipelines.length_batches import sample_by_length
 
 if TYPE_CHECKING:  # annotations only: the registry imports this module, not the reverse
     from pipelines.registry import EvalContext, GenerateOptions
@@ -48,20 +49,28 @@ def load_emdm(out_dir: Path, use_ema: bool = True) -> tuple[EMDMGenerator, EMDMS
 
 
 class EMDMGeneratorRow:
-    """EMDM: ``T`` denoising-GAN steps from ``x_T ~ N(0, I)``, guided on x0 (Eq. 13), text-conditioned."""
+    """EMDM: ``T`` denoising-GAN steps from ``x_T ~ N(0, I)``, guided on x0 (Eq. 13), text-conditioned; a call
+    samples its captions in length-sorted batches of ``batch`` (:func:`pipelines.length_batches.sample_by_length`;
+    None: all at once)."""
 
     stochastic = True
 
-    def __init__(self, name: str, generator: EMDMGenerator, schedule: EMDMSchedule, guidance: float) -> None:
+    def __init__(self, name: str, generator: EMDMGenerator, schedule: EMDMSchedule, guidance: float,
+                 batch: int | None = None) -> None:
         if generator.config.condition != "text":
             raise ValueError(f"{name}: the generator is conditioned on {generator.config.condition!r}, "
                              "the evaluation rows on text")
         self.name, self.generator, self.schedule = name, generator.eval(), schedule
-        self.guidance = float(guidance)
+        self.guidance, self.batch = float(guidance), batch
         self.nfe = schedule.num_steps * (2 if self.guidance != 1.0 else 1)
 
     @torch.inference_mode()
     def sample(self, text: TextBatch, lengths: np.ndarray, seed: int) -> np.ndarray:
+        lengths = np.asarray(lengths, np.int64)
+        return sample_by_length(lambda index, s: self._sample(text.select(index), lengths[index], s), lengths, seed,
+                                self.batch)
+
+    def _sample(self, text: TextBatch, lengths: np.ndarray, seed: int) -> np.ndarray:
         rng = torch.Generator().manual_seed(seed)
         cond = torch.from_numpy(np.asarray(text.pooled, np.float32))
         words = pad_tokens(text.tokens) if self.generator.config.word_tokens else None
@@ -71,21 +80,27 @@ class EMDMGeneratorRow:
 
 
 class EMDMActionRow:
-    """EMDM conditioned on action labels: ``T`` steps from noise, guided on x0 (Eq. 13)."""
+    """EMDM conditioned on action labels: ``T`` steps from noise, guided on x0 (Eq. 13), in length-sorted
+    batches of ``batch`` as :class:`EMDMGeneratorRow`."""
 
     stochastic = True
 
     def __init__(self, name: str, generator: EMDMGenerator, schedule: EMDMSchedule, guidance: float,
-                 classes: Sequence[str]) -> None:
+                 classes: Sequence[str], batch: int | None = None) -> None:
         if generator.config.condition != "action" or generator.config.num_actions != len(classes):
             raise ValueError(f"{name}: the generator is conditioned on {generator.config.condition!r} with "
                              f"{generator.config.num_actions} actions, not on the {len(classes)} action classes")
         self.name, self.generator, self.schedule = name, generator.eval(), schedule
-        self.guidance, self.classes = float(guidance), tuple(classes)
+        self.guidance, self.classes, self.batch = float(guidance), tuple(classes), batch
         self.nfe = schedule.num_steps * (2 if self.guidance != 1.0 else 1)
 
     @torch.inference_mode()
     def sample_actions(self, action_ids: np.ndarray, lengths: np.ndarray, seed: int) -> np.ndarray:
+        action_ids, lengths = np.asarray(action_ids, np.int64), np.asarray(lengths, np.int64)
+        return sample_by_length(lambda index, s: self._sample(action_ids[index], lengths[index], s), lengths, seed,
+                                self.batch)
+
+    def _sample(self, action_ids: np.ndarray, lengths: np.ndarray, seed: int) -> np.ndarray:
         rng = torch.Generator().manual_seed(seed)
         out = sample_emdm(self.generator, self.schedule, torch.as_tensor(np.asarray(action_ids, np.int64)),
                           torch.as_tensor(np.asarray(lengths, np.int64)), self.guidance, rng)
@@ -97,12 +112,13 @@ def emdm_action_rows(ctx: EvalContext) -> list[EMDMActionRow]:
     ``sample.emdm_action_guidance``."""
     generator, schedule, config = load_emdm(ctx.trained(ACTION_STAGE))
     return [EMDMActionRow("EMDM-action", generator, schedule, ctx.params["sample"]["emdm_action_guidance"],
-                          config["classes"])]
+                          config["classes"], ctx.params["sample"]["motion_batch"])]
 
 
 def _emdm(ctx: EvalContext, guidance: float) -> EMDMGeneratorRow:
     generator, schedule, _ = load_emdm(ctx.trained(TRAIN_STAGE))
-    return EMDMGeneratorRow(f"EMDM-{schedule.num_steps}", generator, schedule, guidance)
+    return EMDMGeneratorRow(f"EMDM-{schedule.num_steps}", generator, schedule, guidance,
+                            ctx.params["sample"]["motion_batch"])
 
 
 def emdm_rows(ctx: EvalContext) -> list[Generator]:

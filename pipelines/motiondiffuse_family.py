@@ -43,6 +43,7 @@ from models.motiondiffuse import (
 )
 from pipelines.checkpoint import load_final_model
 from pipelines.config import check_number
+from pipelines.length_batches import sample_by_length
 
 if TYPE_CHECKING:  # annotations only: the registry imports this module, not the reverse
     from pipelines.registry import EvalContext, GenerateOptions
@@ -72,14 +73,15 @@ class MotionDiffuseRow:
     ``eval_items``: None, or the number of each evaluation draw's captions the row answers, and
     ``eval_replications``: None (all), or how many of the replications it is evaluated in (bounds for
     slow samplers, :mod:`pipelines.evaluation`); ``note`` says so in words (nothing reads it: the
-    :class:`~models.generator.Generator` protocol has no notes).
+    :class:`~models.generator.Generator` protocol has no notes). ``batch``: a call samples its captions in
+    length-sorted batches of this many (:func:`pipelines.length_batches.sample_by_length`; None: at once).
     """
 
     stochastic = True
 
     def __init__(self, name: str, model: MotionDiffuse, schedule: NoiseSchedule, method: SamplingMethod = "ddpm",
                  steps: int | None = None, eval_items: int | None = None,
-                 eval_replications: int | None = None, guidance: float = 1.0) -> None:
+                 eval_replications: int | None = None, guidance: float = 1.0, batch: int | None = None) -> None:
         if method == "ddpm":
             if steps not in (None, schedule.num_steps):
                 raise ValueError(f"{name}: DDPM runs all {schedule.num_steps} steps, got steps={steps}")
@@ -92,7 +94,7 @@ class MotionDiffuseRow:
         self.name, self.model, self.schedule = name, model.eval(), schedule
         self.method, self.steps, self.guidance = method, int(steps), float(guidance)
         self.nfe = self.steps * (2 if self.guidance != 1.0 else 1)
-        self.eval_items, self.eval_replications = eval_items, eval_replications
+        self.eval_items, self.eval_replications, self.batch = eval_items, eval_replications, batch
         reps = "each replication" if eval_replications is None else f"the first {eval_replications} replication(s)"
         self.note = ("" if eval_items is None else
                      f"evaluated on the first {eval_items} captions of {reps}' draws, no MultiModality")
@@ -100,14 +102,18 @@ class MotionDiffuseRow:
     @torch.inference_mode()
     def sample(self, text: TextBatch, lengths: np.ndarray, seed: int) -> np.ndarray:
         """(B, max(lengths), D) normalised features, 0 past each length; the same ``seed`` gives the same output."""
-        lengths_t = torch.as_tensor(np.asarray(lengths, np.int64))
-        if int(lengths_t.max()) > self.model.config.max_len:
-            raise ValueError(f"{self.name}: lengths up to {int(lengths_t.max())} frames, the model was trained "
+        lengths = np.asarray(lengths, np.int64)
+        if int(lengths.max()) > self.model.config.max_len:
+            raise ValueError(f"{self.name}: lengths up to {int(lengths.max())} frames, the model was trained "
                              f"with max_len={self.model.config.max_len}")
+        return sample_by_length(lambda index, s: self._sample(text.select(index), lengths[index], s), lengths, seed,
+                                self.batch)
+
+    def _sample(self, text: TextBatch, lengths: np.ndarray, seed: int) -> np.ndarray:
         tokens, mask = pad_tokens([np.asarray(t, np.float32) for t in text.tokens])
-        out = sample_motiondiffuse(self.model, self.schedule, lengths_t, tokens, mask, method=self.method,
-                                   steps=self.steps, generator=torch.Generator().manual_seed(seed),
-                                   guidance=self.guidance)
+        out = sample_motiondiffuse(self.model, self.schedule, torch.as_tensor(lengths), tokens, mask,
+                                   method=self.method, steps=self.steps,
+                                   generator=torch.Generator().manual_seed(seed), guidance=self.guidance)
         return out.float().cpu().numpy()
 
 
@@ -124,7 +130,7 @@ def _load(ctx: EvalContext) -> tuple[MotionDiffuse, NoiseSchedule]:
 def motiondiffuse_rows(ctx: EvalContext) -> list[Generator]:
     """``MotionDiffuse-<T>`` (DDPM, bounded by ``sample.motiondiffuse_ddpm_items`` and
     ``sample.motiondiffuse_ddpm_replications``) and ``MotionDiffuse-DDIM10`` (one load), both with
-    ``sample.motiondiffuse_guidance``."""
+    ``sample.motiondiffuse_guidance`` and in batches of ``sample.motion_batch``."""
     model, schedule = _load(ctx)
     guidance = _guidance(ctx)
     bounds = {}
@@ -132,11 +138,13 @@ def motiondiffuse_rows(ctx: EvalContext) -> list[Generator]:
         value = bounds[key] = ctx.params["sample"][key]
         if value is not None and (isinstance(value, bool) or not isinstance(value, int) or value < 1):
             raise ValueError(f"sample.{key}: expected null or an integer >= 1, got {value!r}")
+    batch = ctx.params["sample"]["motion_batch"]
     return [MotionDiffuseRow(f"MotionDiffuse-{schedule.num_steps}", model, schedule, "ddpm",
                              eval_items=bounds["motiondiffuse_ddpm_items"],
-                             eval_replications=bounds["motiondiffuse_ddpm_replications"], guidance=guidance),
+                             eval_replications=bounds["motiondiffuse_ddpm_replications"], guidance=guidance,
+                             batch=batch),
             MotionDiffuseRow(f"MotionDiffuse-DDIM{DDIM_ROW_STEPS}", model, schedule, "ddim", DDIM_ROW_STEPS,
-                             guidance=guidance)]
+                             guidance=guidance, batch=batch)]
 
 
 def motiondiffuse_generator(ctx: EvalContext, options: GenerateOptions) -> Generator:
@@ -145,13 +153,14 @@ def motiondiffuse_generator(ctx: EvalContext, options: GenerateOptions) -> Gener
     guidance = _guidance(ctx) if options.guidance is None else options.guidance
     model, schedule = _load(ctx)
     t = schedule.num_steps
+    batch = ctx.params["sample"]["motion_batch"]
     if options.steps is None or options.steps == t:
-        return MotionDiffuseRow(f"MotionDiffuse-{t}", model, schedule, "ddpm", guidance=guidance)
+        return MotionDiffuseRow(f"MotionDiffuse-{t}", model, schedule, "ddpm", guidance=guidance, batch=batch)
     if not 1 <= options.steps < t:
         raise ValueError(f"--steps {options.steps}: MotionDiffuse samples with DDPM over all {t} steps (omit "
                          f"--steps) or DDIM with 1..{t - 1} steps")
     return MotionDiffuseRow(f"MotionDiffuse-DDIM{options.steps}", model, schedule, "ddim", options.steps,
-                            guidance=guidance)
+                            guidance=guidance, batch=batch)
 
 
 # --------------------------------------------------------------------------------------------------

@@ -82,7 +82,7 @@ def emdm_scores(params: dict[str, Any], loop_config: dict[str, Any], state: dict
     generator = EMDMGenerator(model)
     generator.load_state_dict(state.get("ema", {}).get("generator", {}).get("module") or state["models"]["generator"])
     row = EMDMGeneratorRow(f"EMDM-{model.num_steps}", generator.eval(), model.make_schedule(),
-                           params["sample"]["emdm_guidance"])
+                           params["sample"]["emdm_guidance"], params["sample"]["motion_batch"])
     with torch.inference_mode():
         return generator_scores(params, row)
 

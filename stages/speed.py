@@ -33,7 +33,7 @@ from pipelines.speed import side_by_side
 #: The families whose rows this stage may time (their modules and params are the stage's DVC deps).
 TIMED = ("emdm", "motiondiffuse")
 PARAMS = ("evaluate", "features.out", "data.skeleton", "paths.artifacts", "speed",
-          *(key for name in TIMED for key in FAMILIES[name].params))
+          *dict.fromkeys(key for name in TIMED for key in FAMILIES[name].params))
 OUT = "speed"
 
 

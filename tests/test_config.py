@@ -218,6 +218,18 @@ def test_unknown_key_of_a_shared_section_added_with_plus_is_an_error():
         "'max_text_tokens', 'text_batch_size']"]
 
 
+@pytest.mark.parametrize(("value", "errors"), [
+    (None, []), (16, []),
+    (0, ["sample.motion_batch: expected an integer >= 1, got 0"]),
+    (1.5, ["sample.motion_batch: expected an integer >= 1, got 1.5"]),
+    (True, ["sample.motion_batch: expected an integer >= 1, got True"]),
+])
+def test_null_or_count_keys_take_null_or_a_positive_integer(value, errors):
+    params = load_params([])
+    params["sample"]["motion_batch"] = value
+    assert check_shared(params, ["sample"]) == errors
+
+
 # --------------------------------------------------------------------------- the real command line
 
 

@@ -32,6 +32,7 @@ from pipelines.emdm_family import (
     load_emdm,
 )
 from pipelines.feature_store import FeatureStore
+from pipelines.length_batches import batch_seed
 from pipelines.recogniser import action_classes, labelled_items
 from pipelines.registry import EvalContext, GenerateOptions
 from pipelines.runner import StepContext, run_training
@@ -207,9 +208,39 @@ def test_action_row_samples_labels_deterministically() -> None:
         EMDMActionRow("EMDM-action", EMDMGenerator(model), model.make_schedule(), 2.5, ["clap", "jump"])
 
 
+def test_rows_in_length_batches_are_each_batch_sampled_alone() -> None:
+    """``batch`` (both rows): sorted by length, ``batch`` rows at a time with the batch's seed; one batch that
+    holds every row is the unbatched call bit for bit."""
+    torch.manual_seed(0)
+    text_model = EMDMConfig(**emdm_training.model_config(emdm_section(num_steps=3), 263, 8))
+    action_model = EMDMConfig(**emdm_training.model_config(emdm_section(num_steps=3, condition="action"), 263, 8,
+                                                             num_actions=3))
+    text_gen, action_gen = EMDMGenerator(text_model), EMDMGenerator(action_model)
+    pooled = np.random.default_rng(0).standard_normal((3, 8)).astype(np.float32)
+    text = TextBatch(["a", "b", "c"], pooled, [np.zeros((2, 8), np.float32)] * 3)
+    actions, lengths = np.array([2, 0, 1]), np.array([12, 7, 9])
+
+    def text_row(batch: int | None):
+        return EMDMGeneratorRow("EMDM", text_gen, text_model.make_schedule(), 2.5, batch).sample
+
+    def action_row(batch: int | None):
+        row = EMDMActionRow("EMDM-action", action_gen, action_model.make_schedule(), 2.5, ["a", "b", "c"], batch)
+        return lambda labels, n, seed: row.sample_actions(labels, n, seed)
+
+    for make, cond in ((text_row, text), (action_row, actions)):
+        np.testing.assert_array_equal(make(3)(cond, lengths, 1), make(None)(cond, lengths, 1))
+        out = make(1)(cond, lengths, 1)
+        for rank, i in enumerate(np.argsort(lengths, kind="stable")):
+            alone = make(None)(cond.select([i]) if isinstance(cond, TextBatch) else cond[[i]], lengths[[i]],
+                               batch_seed(1, rank))[0]
+            np.testing.assert_array_equal(out[i, : lengths[i]], alone)
+            assert not out[i, lengths[i]:].any()
+
+
 def test_the_sweep_hook_scores_the_trial_s_ema_generator(monkeypatch: pytest.MonkeyPatch) -> None:
     """``emdm_scores`` builds the trial's generator from its final state (EMA weights when kept), samples in
-    the trained T steps with ``sample.emdm_guidance``, and returns what the validation protocol measures."""
+    the trained T steps with ``sample.emdm_guidance`` in batches of ``sample.motion_batch``, and returns what
+    the validation protocol measures."""
     from pipelines import validation
 
     model = emdm_training.model_config(emdm_section(num_steps=5), 263, 8)
@@ -222,14 +253,15 @@ def test_the_sweep_hook_scores_the_trial_s_ema_generator(monkeypatch: pytest.Mon
         return {"val_FID": 1.0, "val_R_precision_top3": 0.5}
 
     monkeypatch.setattr(validation, "generator_scores", fake_scores)
+    sample = {"sample": {"emdm_guidance": 1.5, "motion_batch": 16}}
     state = {"models": {"generator": raw.state_dict()}, "ema": {"generator": {"module": ema.state_dict()}}}
-    out = validation.emdm_scores({"sample": {"emdm_guidance": 1.5}}, {"model": model}, state)
+    out = validation.emdm_scores(sample, {"model": model}, state)
     row = seen["row"]
     assert out == {"val_FID": 1.0, "val_R_precision_top3": 0.5}
-    assert row.name == "EMDM-5" and row.guidance == 1.5 and row.nfe == 10
+    assert row.name == "EMDM-5" and row.guidance == 1.5 and row.nfe == 10 and row.batch == 16
     for name, value in row.generator.state_dict().items():
         assert torch.equal(value, ema.state_dict()[name]), name
-    validation.emdm_scores({"sample": {"emdm_guidance": 1.5}}, {"model": model}, state | {"ema": {}})
+    validation.emdm_scores(sample, {"model": model}, state | {"ema": {}})
     assert all(torch.equal(v, raw.state_dict()[k]) for k, v in seen["row"].generator.state_dict().items())
 
 

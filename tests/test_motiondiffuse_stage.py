@@ -25,6 +25,7 @@ from models.generator import Generator, TextBatch
 from models.motiondiffuse import SKIP_EIG_FLOOR, MotionDiffuse, MotionDiffuseConfig
 from pipelines import checkpoint as ckpt
 from pipelines.evaluation import EvalConfig, evaluate, references
+from pipelines.length_batches import batch_seed
 from pipelines.motiondiffuse_family import (
     MotionDiffuseRow,
     load_motiondiffuse,
@@ -177,6 +178,22 @@ def test_row_shape_padding_and_seed(method: str, steps: int | None, nfe: int) ->
     assert not x[1, 7:].any() and not x[2, 9:].any() and np.abs(x[1, :7]).sum() > 0
     with pytest.raises(ValueError, match="max_len=64"):
         row.sample(text, np.array([65, 7, 9]), 1)
+
+
+def test_row_in_length_batches_is_each_batch_sampled_alone() -> None:
+    """``batch``: the rows sorted by length, sampled ``batch`` at a time with the batch's seed; one batch that
+    holds every row is the unbatched call bit for bit."""
+    model = _tiny_model()
+    schedule = model.config.make_schedule()
+    text, lengths = _text(), np.array([12, 7, 9])
+    plain = MotionDiffuseRow("MD", model, schedule, "ddim", 4)
+    np.testing.assert_array_equal(MotionDiffuseRow("MD", model, schedule, "ddim", 4, batch=3).sample(text, lengths, 1),
+                                  plain.sample(text, lengths, 1))
+    out = MotionDiffuseRow("MD", model, schedule, "ddim", 4, batch=1).sample(text, lengths, 1)
+    for rank, i in enumerate(np.argsort(lengths, kind="stable")):  # 7, 9, 12 frames
+        alone = plain.sample(text.select([i]), lengths[[i]], batch_seed(1, rank))[0]
+        np.testing.assert_array_equal(out[i, : lengths[i]], alone)
+        assert not out[i, lengths[i]:].any()
 
 
 def test_compositions_with_one_whole_part_or_segment_are_the_row_bit_for_bit() -> None:
