@@ -100,8 +100,12 @@ Choices where the paper (or its code) is ambiguous or where we depart from it, e
    (training dropout, CFG's unconditional pass) masks every word, so the memory is the null token
    alone and the unconditional model cannot read the caption. D keeps the pooled embedding only.
    An action label has no words: an action G with ``word_tokens`` cross-attends to its label token
-   alone. Its layers then have the text G's shapes, so a trained text G can start it
-   (:func:`action_from_text`).
+   and to ``label_words`` fixed word slots per label (buffers, not trained), which start empty (masked)
+   and which :func:`action_from_text` fills with the word-token states of one training caption of the
+   class. Without them (``label_words`` 0, or an empty label) it reads its label token alone. Its
+   layers have the text G's shapes, so a trained text G can start it: a text G trained long enough
+   reads the words more than the pooled token, and given the pooled token alone it loses the action
+   (docs/emdm.md, 2026-12-05).
 12. Text normalisation (``text_norm``, ours; the paper: False): G's and D's condition tokens are
    ``Linear(LayerNorm(e))`` of the pooled embedding e (no affine), i.e. unit variance per dimension
    whatever the encoder's scale. A unit-norm sentence embedding (MiniLM's) has entries of about
@@ -289,7 +293,7 @@ class EMDMConfig:
     ``d_condition``: False gives D no condition (its condition token is 0): naive DDGAN (EMDM Table D8).
     ``word_tokens``: G also cross-attends to the caption's word-token states (B, M, ``token_dim``) in
     every layer (module docstring item 11; the paper: False, the pooled token only); an action G to its
-    label token. ``text_norm``: G
+    label token and ``label_words`` fixed word slots per label (0: none). ``text_norm``: G
     and D standardise the pooled text embedding before their Linear (item 12; the paper: False).
     ``input_skip``: add a learned per-step multiple of x_{t+1} to G's output (module docstring item 10);
     ``skip_kernel`` (odd; 1: that multiple) widens it to a learned per-step filter over frames.
@@ -322,6 +326,7 @@ class EMDMConfig:
     skip_kernel: int = 1
     word_tokens: bool = False
     token_dim: int = 384
+    label_words: int = 0
     text_norm: bool = False
     p_uncond: float = 0.1
     r1_gamma: float = 0.02
@@ -347,6 +352,9 @@ class EMDMConfig:
         if isinstance(self.skip_kernel, bool) or not isinstance(self.skip_kernel, int) or self.skip_kernel < 1 \
                 or self.skip_kernel % 2 == 0:
             raise ValueError(f"skip_kernel must be an odd integer >= 1, got {self.skip_kernel!r}")
+        if self.label_words < 0 or (self.label_words and (self.condition != "action" or not self.word_tokens)):
+            raise ValueError(f"label_words {self.label_words}: word slots per label need condition 'action' and "
+                             "word_tokens (0: none)")
 
     @property
     def geometric_weight(self) -> float:
@@ -459,7 +467,15 @@ class EMDMGenerator(nn.Module):
         self.layers = _transformer_layers(
             cfg.layers, h, cfg.heads, cfg.ff_dim, cfg.dropout, cfg.activation, cfg.norm_first, cfg.word_tokens
         )
-        self.token_proj = nn.Linear(cfg.token_dim, h) if cfg.word_tokens and cfg.condition == "text" else None
+        reads_words = cfg.word_tokens and (cfg.condition == "text" or cfg.label_words > 0)
+        self.token_proj = nn.Linear(cfg.token_dim, h) if reads_words else None
+        self.label_word_states: Tensor | None
+        self.label_word_mask: Tensor | None
+        slots = cfg.label_words > 0
+        self.register_buffer("label_word_states", torch.zeros(cfg.num_actions, cfg.label_words, cfg.token_dim)
+                             if slots else None)
+        self.register_buffer("label_word_mask", torch.zeros(cfg.num_actions, cfg.label_words, dtype=torch.bool)
+                             if slots else None)
         self.frame_out = nn.Linear(h, cfg.patch_frames * cfg.feature_dim)
         self.skip = None
         if cfg.input_skip:
@@ -494,14 +510,21 @@ class EMDMGenerator(nn.Module):
         ``cond``: (B, text_dim) float for text, (B,) int for action. ``drop_cond`` (B,) bool: use the
         null condition for those samples (condition dropout in training, the unconditional pass of CFG).
         ``words``: (word-token states (B, M, token_dim), mask (B, M) bool True on real tokens), required
-        exactly when a text G has ``config.word_tokens`` (never for action); a dropped sample attends to
-        the null token alone.
+        exactly when a text G has ``config.word_tokens`` (never for action: an action G reads its labels'
+        word slots); a dropped sample attends to the null token alone.
         """
         return self.denoise(x_next, t, z, lengths, self.conditioning(cond, drop_cond, words))
 
     def conditioning(self, cond: Tensor, drop_cond: Tensor | None = None, words: Words | None = None) -> Conditioning:
         """The step-independent part of :meth:`forward` (its arguments as there): a sampler computes it
         once per batch and calls :meth:`denoise` at every step."""
+        if (words is None) == (self.config.word_tokens and self.config.condition == "text"):
+            raise ValueError("words (word-token states and mask) must be given exactly when a text generator has "
+                             f"word_tokens (this {self.config.condition} generator has word_tokens="
+                             f"{self.config.word_tokens})")
+        if self.label_word_states is not None and self.label_word_mask is not None:
+            labels = cond.long().to(self.label_word_states.device)
+            words = (self.label_word_states[labels], self.label_word_mask[labels])
         cond_token = self.condition_tokens(cond, drop_cond)
         return Conditioning(cond_token, self.word_memory(cond_token, words, drop_cond))
 
@@ -534,12 +557,7 @@ class EMDMGenerator(nn.Module):
     def word_memory(self, cond_token: Tensor, words: Words | None, drop_cond: Tensor | None) -> tuple[Tensor, ...]:
         """The cross-attention memory ``[cond token, Linear(words)]`` (B, 1 + M, h) and its padding mask
         (True = ignored): padded words, and every word of a dropped sample; the cond token alone (B, 1, h)
-        for an action G; () without word tokens."""
-        text = self.config.condition == "text"
-        if (words is None) == (self.config.word_tokens and text):
-            raise ValueError("words (word-token states and mask) must be given exactly when a text generator has "
-                             f"word_tokens (this {self.config.condition} generator has word_tokens="
-                             f"{self.config.word_tokens})")
+        for an action G without word slots; () without word tokens."""
         if words is None:
             if not self.config.word_tokens:
                 return ()
@@ -614,25 +632,27 @@ class EMDMDiscriminator(nn.Module):
 
 
 def action_from_text(action_model: EMDMGenerator | EMDMDiscriminator, text_state: Mapping[str, Tensor],
-                     text_config: EMDMConfig, class_captions: Sequence[Tensor]) -> None:
+                     text_config: EMDMConfig, class_captions: Sequence[tuple[Tensor, Tensor]]) -> None:
     """Start an action-conditioned G or D from a trained text-conditioned one of the same sizes (ours).
 
     Every weight but the condition embedding is copied from ``text_state`` (the text model's state dict,
-    ``text_config`` its config). Row c of the label table becomes the mean, over ``class_captions[c]``
-    (n_c, E) (the pooled embeddings of the captions of class c's training motions), of the text model's
-    condition token: given label c, the started model is the text model given c's average caption
-    token, with no words. The paper trains its action models from scratch; the warm start carries the
-    motion a text model learnt from every training motion into the smaller labelled set. A size that
-    differs is a ValueError naming the weight.
+    ``text_config`` its config). ``class_captions[c]`` holds class c's captions: their pooled embeddings
+    (n_c, E) and the word-token states (n, token_dim) of one of them. Row c of the label table becomes the
+    mean of the text model's condition tokens of the n_c captions, and a G with word slots
+    (``label_words``) gets the first ``label_words`` word states. With one caption per class, the started
+    model given label c is the text model given that caption, output for output (a G without slots: with
+    no words). The paper trains its action models from scratch; the warm start carries the motion a text
+    model learnt from every training motion into the smaller labelled set. A size that differs is a
+    ValueError naming the weight.
     """
     cfg = action_model.config
     if cfg.condition != "action" or text_config.condition != "text":
         raise ValueError("action_from_text starts an action model from a text model")
     if len(class_captions) != cfg.num_actions:
-        raise ValueError(f"{len(class_captions)} caption sets for {cfg.num_actions} actions")
+        raise ValueError(f"{len(class_captions)} captions for {cfg.num_actions} actions")
     state = action_model.state_dict()
     for key, value in state.items():
-        if key.startswith("cond_embed."):
+        if key.startswith("cond_embed.") or key.startswith("label_word_"):
             continue
         if key not in text_state or text_state[key].shape != value.shape:
             found = tuple(text_state[key].shape) if key in text_state else "missing"
@@ -645,8 +665,14 @@ def action_from_text(action_model: EMDMGenerator | EMDMDiscriminator, text_state
         text_embed.load_state_dict({k.removeprefix("cond_embed."): v for k, v in text_state.items()
                                     if k.startswith("cond_embed.")})
         with torch.no_grad():
-            rows = [text_embed(captions.to(torch.float32)).mean(0) for captions in class_captions]
+            rows = [text_embed(pooled.to(torch.float32)).mean(0) for pooled, _ in class_captions]
         state["cond_embed.embed.weight"] = torch.stack(rows)
+    if "label_word_states" in state:
+        states, mask = torch.zeros_like(state["label_word_states"]), torch.zeros_like(state["label_word_mask"])
+        for c, (_, words) in enumerate(class_captions):
+            n = min(len(words), cfg.label_words)
+            states[c, :n], mask[c, :n] = words[:n].to(states.dtype), True
+        state["label_word_states"], state["label_word_mask"] = states, mask
     action_model.load_state_dict(state)
 
 

@@ -6,6 +6,7 @@ The stages :mod:`stages.train_emdm` (text) and :mod:`stages.train_emdm_action` (
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import fields
 from functools import partial
 from typing import Any
@@ -14,6 +15,7 @@ import numpy as np
 import torch
 
 from data.motion_dataset import MotionTextDataset, collate_trimmed
+from data.store import StoredItem
 from models.diffusion import lag_moments, wiener_taps
 from models.emdm import (
     EMDMConfig,
@@ -83,15 +85,25 @@ def build(config: dict) -> Components:
 
 def warm_start(generator: EMDMGenerator, discriminator: EMDMDiscriminator, config: dict) -> None:
     """Start the action G and D from the text stage in ``config["init_dir"]`` (:func:`models.emdm.action_from_text`):
-    G from its EMA weights, D from its weights; label c's rows from the captions of class c's training motions."""
+    G from its EMA weights, D from its weights; label c from the :func:`class_captions` of class c's training
+    motions."""
     payload = load_final_model(config["init_dir"])
     text_config = EMDMConfig(**payload["config"]["model"])
     items = labelled_items(FeatureStore(config["features_dir"]).split("train"), config["classes"])
-    captions = [torch.from_numpy(np.concatenate([item.text_pooled for item in items if item.action == label]))
-                for label in config["classes"]]
+    captions = [class_captions([item for item in items if item.action == label]) for label in config["classes"]]
     action_from_text(generator, payload["ema"].get("generator") or payload["models"]["generator"], text_config,
                      captions)
     action_from_text(discriminator, payload["models"]["discriminator"], text_config, captions)
+
+
+def class_captions(items: Sequence[StoredItem]) -> tuple[torch.Tensor, torch.Tensor]:
+    """The captions of a class's ``items`` for :func:`models.emdm.action_from_text`: all their pooled
+    embeddings (n, E), and the word-token states (m, token_dim) of the caption nearest their centre (the
+    largest dot product of its unit-norm pooled embedding with the mean; the first on a tie), float32."""
+    pooled = np.concatenate([item.text_pooled for item in items]).astype(np.float32)
+    words = [tokens for item in items for tokens in item.text_tokens]
+    nearest = int(np.argmax(pooled @ pooled.mean(0)))
+    return torch.from_numpy(pooled), torch.from_numpy(np.asarray(words[nearest], np.float32))
 
 
 def step(batch: dict, ctx: StepContext) -> dict[str, torch.Tensor]:
@@ -166,7 +178,8 @@ def model_config(cfg: dict[str, Any], feature_dim: int, text_dim: int, num_actio
                  section: str = "train_emdm", token_dim: int | None = None) -> dict[str, Any]:
     """The :class:`EMDMConfig` of a checked section, as a plain dict (sampling guidance left out: it is
     ``sample.emdm_guidance``, a sampling setting). ``model.text_norm`` holds for text only; an action G with
-    ``model.word_tokens`` cross-attends to its label token (action labels have no words)."""
+    ``model.word_tokens`` cross-attends to its label token (and to word slots, which :func:`stage_config` adds
+    for a warm start)."""
     text = cfg["condition"] == "text"
     model = {**cfg["model"], "text_norm": cfg["model"]["text_norm"] and text,
              "feature_dim": feature_dim, "condition": cfg["condition"], "text_dim": text_dim,
@@ -214,6 +227,8 @@ def stage_config(params: dict[str, Any], section: str = "train_emdm") -> dict[st
         out["skip_moments"] = lag_moments(motions, out["model"]["skip_kernel"]).tolist()
     if cfg["condition"] == "action":
         out |= {"classes": classes, "init_dir": warm_start_dir(params, section, out["model"])}
+        if out["init_dir"] is not None and out["model"]["word_tokens"]:  # word slots for the start's caption
+            out["model"]["label_words"] = out["max_text_tokens"]
     return out
 
 

@@ -473,35 +473,64 @@ def test_an_action_generator_with_word_tokens_cross_attends_to_its_label_alone()
         gen(x, t, z, torch.tensor([0, 2]), [4, 4], words=(torch.zeros(2, 3, E), torch.ones(2, 3, dtype=torch.bool)))
 
 
-def test_action_from_text_starts_the_action_model_as_the_text_model_of_each_class_captions() -> None:
+def test_empty_word_slots_leave_an_action_generator_reading_its_label_alone() -> None:
+    plain, _ = _nets(condition="action", num_actions=3, word_tokens=True)
+    slots, _ = _nets(condition="action", num_actions=3, word_tokens=True, token_dim=6, label_words=2)
+    missing = slots.load_state_dict(plain.state_dict(), strict=False).missing_keys
+    assert sorted(missing) == ["label_word_mask", "label_word_states", "token_proj.bias", "token_proj.weight"]
+    assert not slots.label_word_mask.any()
+    for gen in (plain, slots):
+        gen.eval()
+    x, z, t = torch.randn(2, 4, D, generator=_gen(20)), torch.randn(2, 4, generator=_gen(21)), torch.tensor([1, 7])
+    labels = torch.tensor([2, 0])
+    torch.testing.assert_close(slots(x, t, z, labels, [4, 3]), plain(x, t, z, labels, [4, 3]), rtol=1e-6, atol=1e-6)
+    for bad in ({"label_words": 2}, {"condition": "action", "num_actions": 2, "label_words": 2},
+                {"condition": "action", "num_actions": 2, "word_tokens": True, "label_words": -1}):
+        with pytest.raises(ValueError, match="label_words"):
+            EMDMConfig(**{**TINY, **bad})
+
+
+def test_action_from_text_starts_the_action_model_as_the_text_model_of_each_class_caption() -> None:
     """With one caption per class, the started action G (D) given label c is the text G (D) given that
-    caption with no words, output for output; with several, the label row is the mean of their tokens."""
+    caption, output for output: with its words when G has word slots (cut to the slots), with none when it
+    has none. With several, the label row is the mean of their condition tokens."""
     text_g, text_d = _nets(word_tokens=True, token_dim=6, text_norm=True, input_skip=True, skip_kernel=3)
-    act_g, act_d = _nets(condition="action", num_actions=3, word_tokens=True, input_skip=True, skip_kernel=3)
-    captions = torch.randn(3, E, generator=_gen(17))
-    for action, text in ((act_g, text_g), (act_d, text_d)):
-        action_from_text(action, text.state_dict(), text.config, [captions[c : c + 1] for c in range(3)])
-    for net in (text_g, act_g, text_d, act_d):
+    act_g, act_d = _nets(condition="action", num_actions=3, word_tokens=True, token_dim=6, label_words=3,
+                         input_skip=True, skip_kernel=3)
+    bare_g, _ = _nets(condition="action", num_actions=3, word_tokens=True, token_dim=6, input_skip=True,
+                      skip_kernel=3)
+    pooled = torch.randn(3, E, generator=_gen(17))
+    words = [torch.randn(n, 6, generator=_gen(30 + n)) for n in (2, 4, 3)]  # class 1's is cut to 3 slots
+    captions = [(p[None], w) for p, w in zip(pooled, words, strict=True)]
+    for action, text in ((act_g, text_g), (act_d, text_d), (bare_g, text_g)):
+        action_from_text(action, text.state_dict(), text.config, captions)
+    for net in (text_g, act_g, text_d, act_d, bare_g):
         net.eval()
     x, z = torch.randn(3, 5, D, generator=_gen(18)), torch.randn(3, 4, generator=_gen(19))
     t, labels, lengths = torch.tensor([0, 4, 9]), torch.tensor([2, 0, 1]), [5, 3, 4]
-    no_words = (torch.zeros(3, 2, 6), torch.zeros(3, 2, dtype=torch.bool))
+    states, mask = torch.zeros(3, 3, 6), torch.zeros(3, 3, dtype=torch.bool)
+    for row, label in enumerate(labels.tolist()):
+        n = min(len(words[label]), 3)
+        states[row, :n], mask[row, :n] = words[label][:n], True
     torch.testing.assert_close(act_g(x, t, z, labels, lengths),
-                               text_g(x, t, z, captions[labels], lengths, words=no_words), rtol=1e-5, atol=1e-5)
+                               text_g(x, t, z, pooled[labels], lengths, words=(states, mask)), rtol=1e-5, atol=1e-5)
+    no_words = (torch.zeros(3, 2, 6), torch.zeros(3, 2, dtype=torch.bool))
+    torch.testing.assert_close(bare_g(x, t, z, labels, lengths),
+                               text_g(x, t, z, pooled[labels], lengths, words=no_words), rtol=1e-5, atol=1e-5)
     torch.testing.assert_close(act_d(x, x.flip(1), t, labels, lengths),
-                               text_d(x, x.flip(1), t, captions[labels], lengths), rtol=1e-5, atol=1e-5)
-    two = [captions[:2], captions[1:], captions[::2]]
-    action_from_text(act_g, text_g.state_dict(), text_g.config, two)
-    torch.testing.assert_close(act_g.cond_embed.embed.weight[0], text_g.cond_embed(captions[:2]).mean(0))
-    with pytest.raises(ValueError, match="3 actions"):
-        action_from_text(act_g, text_g.state_dict(), text_g.config, two[:2])
+                               text_d(x, x.flip(1), t, pooled[labels], lengths), rtol=1e-5, atol=1e-5)
+    several = [(pooled[:2], words[0]), (pooled[1:], words[1]), (pooled[::2], words[2])]
+    action_from_text(act_g, text_g.state_dict(), text_g.config, several)
+    torch.testing.assert_close(act_g.cond_embed.embed.weight[0], text_g.cond_embed(pooled[:2]).mean(0))
+    with pytest.raises(ValueError, match="2 captions for 3 actions"):
+        action_from_text(act_g, text_g.state_dict(), text_g.config, captions[:2])
     wider, _ = _nets(word_tokens=True, token_dim=6, ff_dim=48, input_skip=True, skip_kernel=3)
     with pytest.raises(ValueError, match=r"layers\.0\.ff\.0\.weight: the text model's is \(48, 16\).*\(32, 16\)"):
-        action_from_text(act_g, wider.state_dict(), wider.config, two)
+        action_from_text(act_g, wider.state_dict(), wider.config, captions)
     with pytest.raises(ValueError, match="skip: the text model's is missing"):
-        action_from_text(act_g, _nets(word_tokens=True, token_dim=6)[0].state_dict(), wider.config, two)
+        action_from_text(act_g, _nets(word_tokens=True, token_dim=6)[0].state_dict(), wider.config, captions)
     with pytest.raises(ValueError, match="from a text model"):
-        action_from_text(text_g, text_g.state_dict(), text_g.config, two)
+        action_from_text(text_g, text_g.state_dict(), text_g.config, captions)
 
 
 # --------------------------------------------------------------------------------------------------

@@ -11,6 +11,7 @@ import copy
 import json
 import re
 from pathlib import Path
+from types import SimpleNamespace
 from typing import Any
 
 import numpy as np
@@ -49,6 +50,18 @@ TINY_MODEL = {"width": 16, "layers": 1, "heads": 2, "ff_dim": 32, "dropout": 0.0
               "text_norm": False}
 LOOP = {"seed": 0, "batch_size": 8, "max_steps": 6, "grad_clip": 1.0, "lr_schedule": "constant", "warmup_steps": 0,
         "min_lr_ratio": 0.0, "log_every": 3, "num_data_workers": 0, "length_buckets": 0}
+
+
+def test_class_captions_are_all_pooled_embeddings_and_the_words_of_the_one_nearest_their_mean() -> None:
+    first = SimpleNamespace(text_pooled=np.array([[1.0, 0.0], [0.8, 0.6]], np.float16),
+                            text_tokens=[np.full((2, 3), 1.0), np.full((4, 3), 2.0)])
+    second = SimpleNamespace(text_pooled=np.array([[0.0, 1.0]], np.float16), text_tokens=[np.full((1, 3), 3.0)])
+    pooled, words = emdm_training.class_captions([first, second])  # mean (0.6, 0.53): dots 0.6, 0.8, 0.53
+    assert pooled.dtype == words.dtype == torch.float32
+    torch.testing.assert_close(pooled, torch.tensor([[1.0, 0.0], [0.8, 0.6], [0.0, 1.0]]), rtol=1e-3, atol=1e-3)
+    assert torch.equal(words, torch.full((4, 3), 2.0))
+    _, words = emdm_training.class_captions([second, first])  # order does not change the choice
+    assert torch.equal(words, torch.full((4, 3), 2.0))
 
 
 def emdm_section(**overrides: Any) -> dict[str, Any]:
@@ -348,9 +361,16 @@ def test_stage_writes_outputs_and_the_row_samples(params, tmp_path: Path) -> Non
     sources = {"generator": payload["ema"]["generator"], "discriminator": payload["models"]["discriminator"]}
     for name, model in comps.models.items():
         for key, value in model.state_dict().items():
-            if key != "cond_embed.embed.weight":
+            if key != "cond_embed.embed.weight" and not key.startswith("label_word_"):
                 assert torch.equal(value, sources[name][key]), (name, key)
         assert model.cond_embed.embed.weight.shape[0] == len(config["classes"])
+    # ... and G's word slots hold the words of each class's representative caption
+    gen, items = comps.models["generator"], labelled_items(FeatureStore(config["features_dir"]).split("train"))
+    assert config["model"]["label_words"] == config["max_text_tokens"]
+    for c, label in enumerate(config["classes"]):
+        _, words = emdm_training.class_captions([item for item in items if item.action == label])
+        assert torch.equal(gen.label_word_states[c, : len(words)], words)
+        assert gen.label_word_mask[c].sum() == len(words) and not gen.label_word_states[c, len(words):].any()
     # each condition samples with its own guidance scale (sample.emdm_guidance / emdm_action_guidance)
     (tmp_path / "train_emdm").symlink_to(out.resolve())
     (tmp_path / "train_emdm_action").mkdir()
