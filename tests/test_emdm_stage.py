@@ -364,7 +364,7 @@ def test_stage_writes_outputs_and_the_row_samples(params, tmp_path: Path) -> Non
             if key != "cond_embed.embed.weight" and not key.startswith("label_word_"):
                 assert torch.equal(value, sources[name][key]), (name, key)
         assert model.cond_embed.embed.weight.shape[0] == len(config["classes"])
-    # ... and G's word slots hold the words of each class's representative caption
+    # ... and G's word slots hold the words of each class's central caption
     gen, items = comps.models["generator"], labelled_items(FeatureStore(config["features_dir"]).split("train"))
     assert config["model"]["label_words"] == config["max_text_tokens"]
     for c, label in enumerate(config["classes"]):
