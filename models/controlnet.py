@@ -28,7 +28,8 @@ Architecture (:class:`MotionControlNet`):
 Both zero initialisations make the controlled student's output equal the student's at initialisation.
 
 Training loss (:func:`controlnet_loss`, Eq. 10): ``||ẑ0 - z0||² + λ · L_control`` with ``ẑ0`` the
-controlled student's consistency output at ``z_t`` (t on the LCM solver grid, w ~ U[w_min, w_max]),
+controlled student's consistency output at ``z_t`` (t on the LCM solver grid, the paper's, or uniform
+over a given list of timesteps; w ~ U[w_min, w_max]),
 and ``L_control`` (Eq. 9, :func:`control_loss`): ẑ0 decoded by the **frozen** VAE (gradients flow
 through it), global joints recovered differentiably (``recover_from_ric``), squared error to the
 hint averaged over the controlled (frame, joint) entries and the 3 axes (the reference divides the
@@ -181,6 +182,17 @@ def control_loss(joints: Tensor, hint: Tensor, mask: Tensor) -> Tensor:
     return (error**2).sum() / (3.0 * mask.sum()).clamp(min=1.0)
 
 
+def training_timesteps(timesteps: Sequence[int], batch: int, num_train_steps: int,
+                       generator: torch.Generator | None = None) -> Tensor:
+    """``batch`` int64 timesteps drawn uniformly from ``timesteps``; a ValueError names a value outside
+    ``[0, num_train_steps)`` or an empty list."""
+    choices = torch.as_tensor(list(timesteps), dtype=torch.long)
+    if choices.numel() == 0 or choices.min() < 0 or choices.max() >= num_train_steps:
+        raise ValueError(f"timesteps: expected a non-empty list in [0, {num_train_steps}), got {list(timesteps)}")
+    device = generator.device if generator is not None else "cpu"
+    return choices[torch.randint(0, len(choices), (batch,), generator=generator, device=device).cpu()]
+
+
 def controlnet_loss(
     controlnet: MotionControlNet,
     student: MLDDenoiser,
@@ -197,19 +209,24 @@ def controlnet_loss(
     w_range: tuple[float, float],
     control_weight: float = 1.0,
     num_ddim_steps: int = 10,
+    timesteps: Sequence[int] | None = None,
     text_tokens: Tensor | None = None,
     text_mask: Tensor | None = None,
     generator: torch.Generator | None = None,
 ) -> dict[str, Tensor]:
     """Eq. 10 on diffusion-space latents z0 (B, L, C) with hints (B, T, J, 3) / masks (B, T, J).
 
-    t is uniform on the LCM solver grid of ``num_ddim_steps`` points (MotionLCM). ``mean``/``std``: the
-    feature normalisation (D,).
+    t is uniform on the LCM solver grid of ``num_ddim_steps`` points (MotionLCM), or uniform over
+    ``timesteps`` when given (e.g. ``[799]``, the one step every controlled row samples at).
+    ``mean``/``std``: the feature normalisation (D,).
     Returns ``{"total", "latent", "control"}`` (``control`` is computed, for logging, even when
     ``control_weight`` is 0; its gradient is then unused).
     """
     b = z0.shape[0]
-    t, _ = lcm_training_timesteps(b, schedule.num_steps, num_ddim_steps, generator, z0.device)
+    if timesteps is None:
+        t, _ = lcm_training_timesteps(b, schedule.num_steps, num_ddim_steps, generator, z0.device)
+    else:
+        t = training_timesteps(timesteps, b, schedule.num_steps, generator).to(z0.device)
     z_t = schedule.q_sample(z0, t, torch.randn(z0.shape, generator=generator, device=z0.device, dtype=z0.dtype))
     w = w_range[0] + (w_range[1] - w_range[0]) * torch.rand(b, generator=generator, device=z0.device)
     words = {"time_cond": guidance_embedding(w), "text_tokens": text_tokens, "text_mask": text_mask}

@@ -5,9 +5,9 @@
 the student, the VAE and the noise schedule stay frozen. Each step samples latents from the cached
 frozen-VAE posteriors (:func:`pipelines.latent_cache.control_dataset`), hints from the same windows'
 global joints (:func:`data.control.training_mask`: one of ``train_joints`` per sample, a random number
-of frames), t on the student's LCM solver grid and w over the student's ``w_range``, and minimises
-Eq. 10 (``||ẑ0 - z0||² + control_weight · L_control``). AdamW, cosine schedule with warm-up,
-gradient clipping. Writes ``artifacts/train_controlnet/``.
+of frames), t on the student's LCM solver grid (or uniform over ``timesteps``) and w over the
+student's ``w_range``, and minimises Eq. 10 (``||ẑ0 - z0||² + control_weight · L_control``). AdamW,
+cosine schedule with warm-up, gradient clipping. Writes ``artifacts/train_controlnet/``.
 """
 
 from __future__ import annotations
@@ -24,7 +24,7 @@ from models.controlnet import ControlConfig, MotionControlNet, controlnet_loss
 from models.vae import LatentDistribution
 from pipelines.checkpoint import load_final_model
 from pipelines.cli import artifacts_dir
-from pipelines.config import check_fields, check_keys, check_number
+from pipelines.config import ConfigError, check_fields, check_keys, check_number
 from pipelines.feature_store import FeatureStore
 from pipelines.latent_cache import collate_words, control_dataset
 from pipelines.mld_family import load_mld, load_motionlcm, load_vae
@@ -54,7 +54,7 @@ def step(batch: dict, ctx: StepContext) -> dict[str, torch.Tensor]:
         ctx.models["controlnet"], student, ctx.frozen["vae"], ctx.frozen["schedule"], z0, batch["text"], joints,
         mask, lengths, mean=torch.tensor(cfg["mean"], device=z0.device), std=torch.tensor(cfg["std"], device=z0.device),
         w_range=tuple(cfg["w_range"]), control_weight=cfg["control_weight"], num_ddim_steps=cfg["num_ddim_steps"],
-        text_tokens=batch.get("tokens"), text_mask=batch.get("token_mask"))
+        timesteps=cfg["timesteps"], text_tokens=batch.get("tokens"), text_mask=batch.get("token_mask"))
     ctx.update(losses["total"])
     return {"loss": losses["total"].detach(), "latent": losses["latent"], "control": losses["control"]}
 
@@ -68,7 +68,7 @@ def hint_statistics(features_dir: Path) -> tuple[list[float], list[float]]:
 
 
 SECTION = "train_controlnet"
-SECTION_KEYS = ("lr", "weight_decay", "control_weight", "train_joints", "encoder", "loop")
+SECTION_KEYS = ("lr", "weight_decay", "control_weight", "timesteps", "train_joints", "encoder", "loop")
 
 
 def check_section(params: dict[str, Any]) -> None:
@@ -78,6 +78,10 @@ def check_section(params: dict[str, Any]) -> None:
     check_number(cfg, "lr", SECTION, low=0.0, low_open=True)
     check_number(cfg, "weight_decay", SECTION, low=0.0)
     check_number(cfg, "control_weight", SECTION, low=0.0)
+    steps = cfg["timesteps"]
+    if steps is not None and (not isinstance(steps, list) or not steps
+                              or not all(isinstance(t, int) and not isinstance(t, bool) and t >= 0 for t in steps)):
+        raise ConfigError(f"{SECTION}.timesteps: expected null or a non-empty list of integers >= 0, got {steps!r}")
     joints = cfg["train_joints"]
     try:
         joint_ids(joints if isinstance(joints, list) else [joints])
@@ -101,7 +105,7 @@ def stage_config(params: dict[str, Any]) -> dict[str, Any]:
         **{key: student[key] for key in ("features_dir", "vae_dir", "mean", "std", "crop_frames", "max_text_tokens",
                                          "model", "w_range", "num_ddim_steps")},
         "control": control.to_dict(),
-        **{key: cfg[key] for key in ("lr", "weight_decay", "control_weight")},
+        **{key: cfg[key] for key in ("lr", "weight_decay", "control_weight", "timesteps")},
     }
 
 

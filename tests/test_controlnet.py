@@ -20,6 +20,7 @@ from models.controlnet import (
     controlnet_loss,
     decode_joints,
     refine_noise,
+    training_timesteps,
 )
 from models.diffusion import NoiseSchedule
 from models.generator import Hint
@@ -215,6 +216,36 @@ def test_controlnet_loss_trains_only_the_controlnet_and_weights_the_control_term
     assert all(p.grad is None for p in (*base.parameters(), *vae.parameters()))
 
 
+def test_training_timesteps_draw_only_and_every_listed_value():
+    t = training_timesteps([799, 99], 400, 1000, torch.Generator().manual_seed(0))
+    assert t.dtype == torch.long and set(t.tolist()) == {99, 799}
+    assert 150 < int((t == 799).sum()) < 250  # uniform over the list
+    for bad in ([], [1000], [-1]):
+        message = f"timesteps: expected a non-empty list in [0, 1000), got {bad}"
+        with pytest.raises(ValueError, match=re.escape(message)):
+            training_timesteps(bad, 4, 1000)
+
+
+def test_controlnet_loss_at_listed_timesteps_equals_the_grid_of_that_point():
+    """A one-point solver grid is [999]: ``timesteps=[999]`` must give the same loss, draw for draw; another
+    t gives another loss (the list reaches the model)."""
+    base, vae = student().requires_grad_(False), tiny_vae().requires_grad_(False)
+    controlnet = MotionControlNet(base, control_config())
+    randomise(controlnet)
+    x = batch(b=2, frames=12)
+    kwargs = {"mean": torch.zeros(D), "std": torch.full((D,), 0.1), "w_range": (1.0, 2.0), "control_weight": 1.0,
+              "text_tokens": x["text_tokens"], "text_mask": x["text_mask"]}
+    args = (controlnet, base, vae, SCHEDULE, torch.randn(2, 2, 8), x["text_emb"], x["hint"], x["mask"],
+            torch.tensor([12, 9]))
+
+    def loss(**extra) -> torch.Tensor:
+        with torch.no_grad():
+            return controlnet_loss(*args, generator=torch.Generator().manual_seed(4), **kwargs, **extra)["total"]
+
+    assert torch.equal(loss(num_ddim_steps=1), loss(timesteps=[999]))
+    assert not torch.allclose(loss(timesteps=[999]), loss(timesteps=[99]))
+
+
 def test_decode_joints_matches_the_numpy_recovery():
     vae = tiny_vae()
     z = torch.randn(2, 2, 8)
@@ -290,6 +321,13 @@ def test_control_config_validates_statistics_and_patch():
         ControlConfig(joints_num=J, hint_mean=[0.0] * 66, hint_std=[0.0] * 66)
     with pytest.raises(ValueError, match="patch_frames must be >= 1, got 0"):
         control_config(patch_frames=0)
+
+
+@pytest.mark.parametrize("value", ["[]", "[-1]", "[7.5]", "799"])
+def test_stage_check_names_bad_timesteps(value):
+    params = load_params([f"train_controlnet.timesteps={value}"])
+    with pytest.raises(ConfigError, match=re.escape("train_controlnet.timesteps: expected null or a non-empty list")):
+        train_controlnet.check_section(params)
 
 
 @pytest.mark.parametrize(("value", "message"), [
