@@ -323,11 +323,13 @@ def test_control_config_validates_statistics_and_patch():
         control_config(patch_frames=0)
 
 
-@pytest.mark.parametrize("value", ["[]", "[-1]", "[7.5]", "799"])
+@pytest.mark.parametrize("value", ["[]", "[-1]", "[7.5]", "799", "[799,1000]"])
 def test_stage_check_names_bad_timesteps(value):
     params = load_params([f"train_controlnet.timesteps={value}"])
-    with pytest.raises(ConfigError, match=re.escape("train_controlnet.timesteps: expected null or a non-empty list")):
+    message = "train_controlnet.timesteps: expected null or a non-empty list of integers in [0, 1000)"
+    with pytest.raises(ConfigError, match=re.escape(message)):
         train_controlnet.check_section(params)
+    train_controlnet.check_section(load_params(["train_controlnet.timesteps=[0,799,999]"]))
 
 
 @pytest.mark.parametrize(("value", "message"), [
