@@ -6,8 +6,7 @@ The labelled test motions (one crop each, the action protocol's first draw) are 
 (k = 0..T) and denoised by the action-conditioned generator (``train_emdm_action``) from there: for
 t = k-1..0 a fresh z, the guided x0 (``sample.emdm_action_guidance``) and the posterior sample, the last
 step returning x0 itself, as :func:`models.emdm.sample_emdm` does from k = T. The table gives the
-action recogniser's accuracy on the result and its feature MSE to the real crops (normalised as G sees
-them, `models/emdm.py` item 13), and,
+action recogniser's accuracy on the result and its feature MSE to the real crops (normalised), and,
 for the lowest levels, the accuracy of the noisy x_k itself and of the generator's input skip alone
 (what G adds on top of it). k = T is the evaluation's sampling; k = 0 is the real crops.
 ``--raw``: the raw weights instead of the EMA.
@@ -62,13 +61,12 @@ def main() -> None:
     r_mean, r_std = recogniser.mean.numpy(), recogniser.std.numpy()
     lengths = torch.as_tensor(draw.lengths)
     valid = (torch.arange(draw.real.shape[1])[None] < lengths[:, None])[..., None]
-    scale = generator.feature_scale  # G's space (models/emdm.py item 13); the recogniser reads the store's
-    x0 = torch.where(valid, torch.from_numpy(((draw.real - mean) / std).astype(np.float32)) * scale, 0.0)
+    x0 = torch.where(valid, torch.from_numpy(((draw.real - mean) / std).astype(np.float32)), 0.0)
     ids = torch.as_tensor([config["classes"].index(a) for a in draw.actions])
     guidance = float(params["sample"]["emdm_action_guidance"])
 
     def accuracy(x: torch.Tensor) -> float:
-        _, logits = recognise(recogniser, renormalise((x / scale).numpy(), mean, std, r_mean, r_std), draw.lengths)
+        _, logits = recognise(recogniser, renormalise(x.numpy(), mean, std, r_mean, r_std), draw.lengths)
         return float((logits.argmax(-1) == draw.labels).mean())
 
     def mse(x: torch.Tensor) -> float:

@@ -2,8 +2,7 @@
 
     python benchmarks/emdm_levels.py [--raw] [key=value ...]
 
-For each level k = 1..T the validation motions (the first 32, normalised as G sees them: times its
-``feature_scale``, ``models/emdm.py`` item 13) are noised to x_k and the
+For each level k = 1..T the validation motions (the first 32, normalised) are noised to x_k and the
 generator predicts x0 from (x_k, t = k - 1, z, caption); the table gives the masked MSE beside the
 linear estimate's (sqrt(alpha_bar_k) x_k, the least-squares estimate for unit-variance data), so a
 generator worse than that estimate at small k shows a bottleneck. ``--raw``: the raw weights
@@ -45,7 +44,7 @@ def main() -> None:
     data = MotionTextDataset(config["features_dir"], "val", config["mean"], config["std"], 196,
                              word_tokens=config["max_text_tokens"] if reads_words else 0)
     batch = collate_trimmed_words([data[i] for i in range(min(32, len(data)))])
-    x0, lengths, text = batch["motion"] * generator.feature_scale, batch["length"], batch["text"]
+    x0, lengths, text = batch["motion"], batch["length"], batch["text"]
     words = (batch["tokens"], batch["token_mask"]) if reads_words else None
     valid = (torch.arange(x0.shape[1])[None] < lengths[:, None])[..., None]
     count = valid.sum() * x0.shape[-1]

@@ -306,24 +306,6 @@ def grouped_mean_std(frames: np.ndarray, joints_num: int) -> tuple[np.ndarray, n
     return mean.astype(np.float32), std.astype(np.float32)
 
 
-def feat_bias_scale(joints_num: int, feat_bias: float) -> np.ndarray:
-    """(12J - 1,) float32: ``feat_bias`` on the root groups (yaw velocity, xz velocity, height: dims 0:4)
-    and the foot contacts (the last 4), 1 elsewhere.
-
-    MotionDiffuse's code divides those groups' Std by ``feat_bias`` before normalising (the T2M evaluator
-    does the same with 5). Features x normalised with the plain Mean/Std become ``x * scale`` under
-    that normalisation: a model trained on them weighs those groups' squared errors ``feat_bias ** 2``
-    times as much, and under a diffusion's noise they stay visible to higher noise levels.
-    """
-    if not feat_bias > 0:
-        raise ValueError(f"feat_bias must be positive, got {feat_bias!r}")
-    groups = feature_groups(joints_num)
-    scale = np.ones(groups["contacts"].stop, np.float32)
-    scale[groups["root_yaw"].start : groups["root_y"].stop] = feat_bias
-    scale[groups["contacts"]] = feat_bias
-    return scale
-
-
 def stats_problem(name: str, values: np.ndarray, feature_dim: int) -> str | None:
     """Why ``values`` cannot be the normalisation ``name`` ("mean" or "std") of ``feature_dim``-dim features.
 

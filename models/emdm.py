@@ -111,14 +111,6 @@ Choices where the paper (or its code) is ambiguous or where we depart from it, e
    whatever the encoder's scale. A unit-norm sentence embedding (MiniLM's) has entries of about
    1 / sqrt(E); through a default-initialised Linear its token is then an order of magnitude smaller
    than the sinusoidal position added to it, and the condition starts almost unread.
-13. Root and contact weighting (``feat_bias``, ours for EMDM; MotionDiffuse's code: 25, its released
-   options 5; EMDM uses MDM's plain Mean/Std, i.e. 1): G and D work on the features normalised with
-   the root groups' and the foot contacts' Std divided by ``feat_bias``
-   (:func:`data.features.feat_bias_scale`), i.e. the store's normalised features times
-   ``feature_scale``. The training recipe multiplies its batches by it and :func:`sample_emdm` divides
-   its output by it, so callers see the store's normalisation. With the plain normalisation those 8 of
-   263 dimensions weigh 3 % of the regression, and a slow drift of the root costs almost nothing: in
-   place, the samples wandered and read as walks (docs/emdm.md, 2026-12-05).
 """
 
 from __future__ import annotations
@@ -135,7 +127,7 @@ from torch import Tensor, nn
 from torch.nn import functional as F
 from torch.nn.attention import SDPBackend, sdpa_kernel
 
-from data.features import feat_bias_scale, feature_groups, recover_from_ric
+from data.features import feature_groups, recover_from_ric
 from data.skeleton import SKELETONS
 from models.diffusion import cfg_combine, condition_dropout, sample_timesteps
 from models.transformer import PositionalEncoding, TransformerLayer, eval_mode, lengths_to_mask, timestep_embedding
@@ -305,7 +297,6 @@ class EMDMConfig:
     and D standardise the pooled text embedding before their Linear (item 12; the paper: False).
     ``input_skip``: add a learned per-step multiple of x_{t+1} to G's output (module docstring item 10);
     ``skip_kernel`` (odd; 1: that multiple) widens it to a learned per-step filter over frames.
-    ``feat_bias``: the root and contact features' weight (module docstring item 13; 1: the plain normalisation).
     Training: ``p_uncond`` (condition dropout, 0.1), ``r1_gamma`` (0.02), ``r1_interval`` (lazy R1
     every k steps, scaled by k), ``geo_weight`` R (None: 100 for text, 1 for action), ``geo_lambda``.
     Schedule: ``num_steps``, ``beta_min``, ``beta_max``. Sampling: ``guidance`` (2.5).
@@ -337,7 +328,6 @@ class EMDMConfig:
     token_dim: int = 384
     label_words: int = 0
     text_norm: bool = False
-    feat_bias: float = 1.0
     p_uncond: float = 0.1
     r1_gamma: float = 0.02
     r1_interval: int = 15
@@ -365,8 +355,6 @@ class EMDMConfig:
         if self.label_words < 0 or (self.label_words and (self.condition != "action" or not self.word_tokens)):
             raise ValueError(f"label_words {self.label_words}: word slots per label need condition 'action' and "
                              "word_tokens (0: none)")
-        if not self.feat_bias > 0:
-            raise ValueError(f"feat_bias must be positive, got {self.feat_bias!r}")
 
     @property
     def geometric_weight(self) -> float:
@@ -489,9 +477,6 @@ class EMDMGenerator(nn.Module):
         self.register_buffer("label_word_mask", torch.zeros(cfg.num_actions, cfg.label_words, dtype=torch.bool)
                              if slots else None)
         self.frame_out = nn.Linear(h, cfg.patch_frames * cfg.feature_dim)
-        self.feature_scale: Tensor  # x of the model's space = store-normalised x * feature_scale (item 13)
-        self.register_buffer("feature_scale", torch.from_numpy(feat_bias_scale(cfg.joints_num, cfg.feat_bias)),
-                             persistent=False)
         self.skip = None
         if cfg.input_skip:
             scalar = cfg.make_schedule().alphas_cumprod[1:].sqrt().float()
@@ -962,8 +947,7 @@ def sample_emdm(
 ) -> Tensor:
     """EMDM sampling (Alg. 1): cond (B, ...) and lengths (B,) -> normalised features (B, N, D).
 
-    The chain runs in G's space (module docstring item 13) and its result is divided by G's
-    ``feature_scale``, so it is in the feature store's normalisation. ``x_T ~ N(0, I)`` (or ``x_T``), N = ``num_frames`` or ``max(lengths)``; for t = T-1..0 draw a fresh
+    ``x_T ~ N(0, I)`` (or ``x_T``), N = ``num_frames`` or ``max(lengths)``; for t = T-1..0 draw a fresh
     z, ``x0_hat = guided_x0(x_{t+1}, t, z)`` and ``x_t = posterior_sample(x0_hat, x_{t+1}, t)``
     (Alg. 2); the last step returns x0_hat itself (the posterior at t = 0). Padded frames are 0 (G
     zeroes its output there). The condition's part of G (:func:`guidance_batch`) is computed once,
@@ -989,6 +973,6 @@ def sample_emdm(
             z = _randn((b, cfg.z_dim), ref, generator_rng)
             x0_hat = _guided(generator, x, t, z, lengths_g, conditioning, guidance)
             if step == 0:
-                return x0_hat / generator.feature_scale
+                return x0_hat
             x = torch.where(valid, schedule.posterior_sample(x0_hat, x, t, _randn(x.shape, ref, generator_rng)), 0.0)
     raise AssertionError("unreachable: a schedule has at least one step")

@@ -14,7 +14,6 @@ from typing import Any
 import numpy as np
 import torch
 
-from data.features import feat_bias_scale
 from data.motion_dataset import MotionTextDataset, collate_trimmed
 from data.store import StoredItem
 from models.diffusion import lag_moments, wiener_taps
@@ -46,7 +45,7 @@ ACTION_KEYS = ("init_from",)
 #: and the training keys above).
 MODEL_KEYS = ("width", "layers", "heads", "ff_dim", "dropout", "activation", "norm_first", "z_dim", "mapping_layers",
               "d_width", "d_layers", "d_heads", "d_ff_dim", "d_time_dim", "patch_frames", "d_condition",
-              "input_skip", "skip_kernel", "word_tokens", "text_norm", "feat_bias")
+              "input_skip", "skip_kernel", "word_tokens", "text_norm")
 #: Keys that decide the networks' weight shapes, which a warm start needs equal: every model key but the
 #: two that shape no weight (``dropout``, and ``text_norm``, a fixed standardisation of the embedding).
 SHAPE_KEYS = ("feature_dim", "num_steps") + tuple(k for k in MODEL_KEYS if k not in ("dropout", "text_norm"))
@@ -113,8 +112,7 @@ def step(batch: dict, ctx: StepContext) -> dict[str, torch.Tensor]:
         raise NotImplementedError("train_emdm runs on one worker (ray.num_workers: 1): its D step is not DDP-safe")
     generator, discriminator = ctx.models["generator"], ctx.models["discriminator"]
     schedule = ctx.frozen["schedule"]
-    scale = ctx.unwrap("generator").feature_scale  # G's space: the store's normalisation times this (item 13)
-    x0, lengths = batch["motion"] * scale, batch["length"]
+    x0, lengths = batch["motion"], batch["length"]
     text = generator.config.condition == "text"
     cond = batch["text"] if text else batch["label"]
     words = (batch["tokens"], batch["token_mask"]) if generator.config.word_tokens and text else None
@@ -125,7 +123,7 @@ def step(batch: dict, ctx: StepContext) -> dict[str, torch.Tensor]:
     discriminator.requires_grad_(False)  # G's loss needs dD/dx only; D's gradients would be thrown away
     try:
         g = generator_step_losses(generator, discriminator, schedule, x0, cond, lengths, ctx.frozen["mean"],
-                                  ctx.frozen["std"] / scale, words=words)
+                                  ctx.frozen["std"], words=words)
         ctx.update(g["total"], "g")
     finally:
         discriminator.requires_grad_(True)
@@ -224,10 +222,9 @@ def stage_config(params: dict[str, Any], section: str = "train_emdm") -> dict[st
         "model": model_config(cfg, store.feature_dim, int(encoder["dim"]), len(classes), section,
                               int(encoder["token_dim"])),
     }
-    if out["model"]["input_skip"] and out["model"]["skip_kernel"] > 1:  # G's space: item 13's scale
+    if out["model"]["input_skip"] and out["model"]["skip_kernel"] > 1:
         motions = [torch.from_numpy(x) for x in store.normalised_motions("train")]
-        scale = torch.from_numpy(feat_bias_scale(store.joints_num, out["model"]["feat_bias"]))
-        out["skip_moments"] = (lag_moments(motions, out["model"]["skip_kernel"]) * scale**2).tolist()
+        out["skip_moments"] = lag_moments(motions, out["model"]["skip_kernel"]).tolist()
     if cfg["condition"] == "action":
         out |= {"classes": classes, "init_dir": warm_start_dir(params, section, out["model"])}
         if out["init_dir"] is not None and out["model"]["word_tokens"]:  # word slots for the start's caption

@@ -560,7 +560,6 @@ class _ConstantX0(nn.Module):
         super().__init__()
         self.config = EMDMConfig(**TINY)
         self.x0 = nn.Parameter(x0)
-        self.feature_scale = torch.ones(x0.shape[-1])
         self.calls: list[tuple[int, list[int], list[bool] | None]] = []
         self.conditionings = 0
 
@@ -607,22 +606,6 @@ def test_sampler_is_deterministic_and_zero_on_padding() -> None:
     assert torch.equal(a[1, 4:], torch.zeros(2, D)) and a[1, :4].abs().sum() > 0
     assert gen.training  # the mode is restored
     assert sample_emdm(gen, schedule, cond, lengths, 2.5, _gen(17), num_frames=9).shape == (2, 9, D)
-
-
-def test_a_model_with_feat_bias_samples_in_the_store_normalisation() -> None:
-    """feat_bias b (module docstring item 13): the chain runs in G's space, so with the same weights and
-    draws the sample is the plain model's divided by the scale (b on the root and contact groups)."""
-    plain, _ = _nets()
-    biased = EMDMGenerator(EMDMConfig(**{**TINY, "feat_bias": 5.0}))
-    biased.load_state_dict(plain.state_dict())  # the scale is a fixed buffer, not a weight
-    scale = biased.feature_scale
-    assert scale[:4].tolist() == scale[-4:].tolist() == [5.0] * 4 and torch.equal(scale[4:-4], torch.ones(D - 8))
-    cond, lengths = torch.randn(2, E, generator=_gen(16)), [6, 4]
-    a = sample_emdm(plain, EMDMSchedule(), cond, lengths, 2.5, _gen(17))
-    b = sample_emdm(biased, EMDMSchedule(), cond, lengths, 2.5, _gen(17))
-    assert torch.equal(b, a / scale) and not torch.equal(a, b)
-    with pytest.raises(ValueError, match="feat_bias must be positive"):
-        EMDMConfig(**{**TINY, "feat_bias": 0.0})
 
 
 def test_sampler_with_conditioning_computed_once_equals_algorithm_1_step_by_step() -> None:

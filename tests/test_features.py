@@ -14,7 +14,6 @@ import torch
 from data import rotations as R
 from data.features import (
     check_stats,
-    feat_bias_scale,
     feature_groups,
     features_from_joints,
     grouped_mean_std,
@@ -107,23 +106,6 @@ def test_fixture_std_has_the_seven_group_values() -> None:
     for (name, sl), value in zip(feature_groups(22).items(), expected, strict=True):
         assert np.all(std[sl] == std[sl][0]), name
         assert abs(std[sl][0] - value) < 1e-6, name
-
-
-def test_feat_bias_scale_weights_the_root_and_contact_groups_only() -> None:
-    """MotionDiffuse's feat_bias: the Std of dims 0:4 (root yaw, xz, height) and of the 4 contacts divided
-    by it, i.e. store-normalised features multiplied by it there."""
-    for joints, dims in ((22, 263), (21, 251)):
-        scale = feat_bias_scale(joints, 5.0)
-        assert scale.shape == (dims,) and scale.dtype == np.float32
-        assert np.flatnonzero(scale == 5.0).tolist() == [0, 1, 2, 3, dims - 4, dims - 3, dims - 2, dims - 1]
-        assert np.all(np.delete(scale, [0, 1, 2, 3, dims - 4, dims - 3, dims - 2, dims - 1]) == 1.0)
-        mean, std = np.load(FIXTURES / "Mean.npy"), np.load(FIXTURES / "Std.npy")
-        if dims == 263:  # the same thing as normalising with the divided Std
-            x = np.load(FIXTURES / "new_joint_vecs_012314.npy")[:10]
-            np.testing.assert_allclose((x - mean) / std * scale, (x - mean) / (std / scale), rtol=1e-5)
-    assert np.all(feat_bias_scale(22, 1.0) == 1.0)
-    with pytest.raises(ValueError, match="feat_bias must be positive"):
-        feat_bias_scale(22, 0.0)
 
 
 # --------------------------------------------------------------------------- invariants
