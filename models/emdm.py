@@ -65,7 +65,10 @@ Choices where the paper (or its code) is ambiguous or where we depart from it, e
    foot joints (ankles, toes) from frame i to i+1 where the ground-truth contact label of frame i
    (the features' contacts group, denormalised and thresholded at 0.5) is on; HumanML3D defines
    that label from the same i -> i+1 displacement. R = 100 for text, 1 for action (Sec. 5.2);
-   lambda defaults to 1 (the paper uses 1 for action, 0 for text: set ``geo_lambda``).
+   lambda defaults to 1 (the paper uses 1 for action, 0 for text: set ``geo_lambda``). Ours: the foot
+   term may take its own weight (``geo_foot_lambda``; None: lambda). Unlike ``L_pos``, which compares
+   global positions and so grows with any early heading error, ``L_foot`` is a speed, which a heading
+   error does not change; it is the term that says a planted foot does not slide.
 7. One generator step uses ONE draw of (t, pair, z) for both the adversarial and the geometric
    term (the code draws them independently, which costs a second G forward). The fake ``x_t`` of
    the D step is computed without gradient into G (the code builds that graph and discards it).
@@ -298,7 +301,8 @@ class EMDMConfig:
     ``input_skip``: add a learned per-step multiple of x_{t+1} to G's output (module docstring item 10);
     ``skip_kernel`` (odd; 1: that multiple) widens it to a learned per-step filter over frames.
     Training: ``p_uncond`` (condition dropout, 0.1), ``r1_gamma`` (0.02), ``r1_interval`` (lazy R1
-    every k steps, scaled by k), ``geo_weight`` R (None: 100 for text, 1 for action), ``geo_lambda``.
+    every k steps, scaled by k), ``geo_weight`` R (None: 100 for text, 1 for action), ``geo_lambda``,
+    ``geo_foot_lambda`` (the foot term's own lambda; None: ``geo_lambda``; module docstring item 6).
     Schedule: ``num_steps``, ``beta_min``, ``beta_max``. Sampling: ``guidance`` (2.5).
     """
 
@@ -333,6 +337,7 @@ class EMDMConfig:
     r1_interval: int = 15
     geo_weight: float | None = None
     geo_lambda: float = 1.0
+    geo_foot_lambda: float | None = None
     num_steps: int = 10
     beta_min: float = 0.1
     beta_max: float = 20.0
@@ -757,8 +762,10 @@ def geometric_losses(
     weight: float = 100.0,
     lam: float = 1.0,
     feet: Sequence[int] | None = None,
+    foot_lam: float | None = None,
 ) -> dict[str, Tensor]:
-    """EMDM's geometric loss ``R (L_recon + lambda (L_pos + L_vel + L_foot))`` (Eqs. 7-12; docstring item 6).
+    """EMDM's geometric loss ``R (L_recon + lambda (L_pos + L_vel + L_foot))`` (Eqs. 7-12; docstring item 6);
+    ``foot_lam`` replaces lambda on ``L_foot`` (None: lambda).
 
     pred = x0_hat, target = x0: normalised features (B, N, D); ``mean``/``std`` (D,) the statistics
     they were normalised with; joints ``J(x) = recover_from_ric(x * std + mean)`` (B, N, J, 3).
@@ -791,7 +798,7 @@ def geometric_losses(
         "vel": masked_mse(v_hat, v, pairs),
         "foot": masked_mse(foot_vel, torch.zeros_like(foot_vel), pairs),
     }
-    geo = terms["recon"] + lam * (terms["pos"] + terms["vel"] + terms["foot"])
+    geo = terms["recon"] + lam * (terms["pos"] + terms["vel"]) + (lam if foot_lam is None else foot_lam) * terms["foot"]
     return {**terms, "geo": geo, "total": weight * geo}
 
 
@@ -873,7 +880,8 @@ def generator_step_losses(
     fake_t = schedule.posterior_sample(x0_hat, x_next, t, _randn(x0.shape, x0, generator_rng))
     adv = g_adversarial_loss(discriminator(fake_t, x_next, t, cond, lengths))
     geo = geometric_losses(
-        x0_hat, x0, lengths, mean, std, cfg.joints_num, weight=cfg.geometric_weight, lam=cfg.geo_lambda
+        x0_hat, x0, lengths, mean, std, cfg.joints_num, weight=cfg.geometric_weight, lam=cfg.geo_lambda,
+        foot_lam=cfg.geo_foot_lambda,
     )
     return {"adv": adv, **{k: v for k, v in geo.items() if k != "total"}, "total": adv + geo["total"]}
 

@@ -38,7 +38,7 @@ from pipelines.stage import TrainingStage
 ADAM_BETAS = (0.5, 0.9)
 #: Keys of the ``train_emdm`` params section (``loop`` is the runner's, checked by the skeleton).
 SECTION_KEYS = ("condition", "num_steps", "lr_g", "lr_d", "ema_decay", "geometric_weight", "geometric_lambda",
-                "r1_gamma", "r1_interval", "p_uncond", "crop_frames", "model", "loop")
+                "foot_lambda", "r1_gamma", "r1_interval", "p_uncond", "crop_frames", "model", "loop")
 #: The action section's one more key: ``init_from``, the text stage whose G and D start it, or null.
 ACTION_KEYS = ("init_from",)
 #: Keys of ``train_emdm.model``: the network sizes (the rest of :class:`EMDMConfig` comes from the store
@@ -161,6 +161,8 @@ def check_section(cfg: dict[str, Any], section: str = "train_emdm") -> None:
     if cfg["geometric_weight"] is not None:
         check_number(cfg, "geometric_weight", section, low=0.0)
     check_number(cfg, "geometric_lambda", section, low=0.0)
+    if cfg["foot_lambda"] is not None:
+        check_number(cfg, "foot_lambda", section, low=0.0)
     check_number(cfg, "r1_gamma", section, low=0.0)
     check_number(cfg, "r1_interval", section, low=1, integer=True)
     check_number(cfg, "p_uncond", section, low=0.0, high=1.0)
@@ -185,7 +187,8 @@ def model_config(cfg: dict[str, Any], feature_dim: int, text_dim: int, num_actio
              "feature_dim": feature_dim, "condition": cfg["condition"], "text_dim": text_dim,
              "num_actions": num_actions, "token_dim": token_dim or text_dim, "p_uncond": cfg["p_uncond"],
              "r1_gamma": cfg["r1_gamma"], "r1_interval": cfg["r1_interval"], "geo_weight": cfg["geometric_weight"],
-             "geo_lambda": cfg["geometric_lambda"], "num_steps": cfg["num_steps"]}
+             "geo_lambda": cfg["geometric_lambda"], "geo_foot_lambda": cfg["foot_lambda"],
+             "num_steps": cfg["num_steps"]}
     try:
         checked = EMDMConfig(**model)
     except (TypeError, ValueError) as err:

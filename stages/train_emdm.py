@@ -13,7 +13,8 @@ DDGAN's iteration (EMDM App. C.3, :mod:`models.emdm` docstring items 5-7):
    every ``r1_interval`` steps (lazy regularisation, weighted by the interval; the runner's step
    count decides when, so a resumed run regularises on the same steps);
 2. one G update with D frozen: non-saturating adversarial loss plus ``R * geo`` (Eqs. 7-12), R =
-   ``geometric_weight`` (null: 100 for text, 1 for action), lambda = ``geometric_lambda``.
+   ``geometric_weight`` (null: 100 for text, 1 for action), lambda = ``geometric_lambda`` (on the foot term:
+   ``foot_lambda``, null: the same).
 
 All randomness (t, pairs, z, condition dropout) comes from the process-global torch RNG, which the
 runner seeds per rank and checkpoints, so a resumed run is bit-identical to an uninterrupted one.

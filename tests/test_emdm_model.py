@@ -195,6 +195,11 @@ def test_geometric_loss_hand_values_on_a_sliding_pose() -> None:
     assert out["geo"].item() == pytest.approx(geo, rel=1e-5)
     assert out["total"].item() == pytest.approx(100 * geo, rel=1e-5)
     assert geometric_losses(pred, target, [5, 3], mean, std, J, lam=0.0)["geo"].item() == pytest.approx(sq / D)
+    # the foot term's own lambda: recon + 0 (pos + vel) + 7 foot, and lambda on pos and vel alone
+    only_feet = geometric_losses(pred, target, [5, 3], mean, std, J, lam=0.0, foot_lam=7.0)["geo"].item()
+    assert only_feet == pytest.approx(sq / D + 7 * sq / 3, rel=1e-5)
+    no_feet = geometric_losses(pred, target, [5, 3], mean, std, J, lam=1.0, foot_lam=0.0)["geo"].item()
+    assert no_feet == pytest.approx(geo - expect["foot"], rel=1e-5)
     # contacts: only the left ankle on -> a quarter; none on -> 0 although the feet slide
     target[..., 260:263] = 0.0
     assert geometric_losses(pred, target, [5, 3], mean, std, J)["foot"].item() == pytest.approx(sq / 12, rel=1e-5)

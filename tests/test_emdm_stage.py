@@ -67,8 +67,8 @@ def test_class_captions_are_all_pooled_embeddings_and_the_words_of_the_one_neare
 def emdm_section(**overrides: Any) -> dict[str, Any]:
     """A tiny ``train_emdm`` params section (R1 every 2 steps, so short runs regularise)."""
     section = {"condition": "text", "num_steps": 10, "lr_g": 2e-4, "lr_d": 1e-3, "ema_decay": 0.9,
-               "geometric_weight": None, "geometric_lambda": 1.0, "r1_gamma": 0.02, "r1_interval": 2,
-               "p_uncond": 0.1, "crop_frames": 64, "model": dict(TINY_MODEL), "loop": dict(LOOP)}
+               "geometric_weight": None, "geometric_lambda": 1.0, "foot_lambda": None, "r1_gamma": 0.02,
+               "r1_interval": 2, "p_uncond": 0.1, "crop_frames": 64, "model": dict(TINY_MODEL), "loop": dict(LOOP)}
     if overrides.get("condition") == "action":
         section["init_from"] = None
     return section | overrides
@@ -94,6 +94,7 @@ def params(small_store) -> dict[str, Any]:
     ({"r1_interval": 1.5}, "train_emdm.r1_interval"),
     ({"p_uncond": 1.5}, "train_emdm.p_uncond"),
     ({"geometric_weight": "big"}, "train_emdm.geometric_weight"),
+    ({"foot_lambda": -1.0}, "train_emdm.foot_lambda"),
     ({"ema_decay": True}, "train_emdm.ema_decay"),
     ({"model": TINY_MODEL | {"depth": 3}}, "train_emdm.model"),
     ({"model": {k: v for k, v in TINY_MODEL.items() if k != "z_dim"}}, "train_emdm.model"),
@@ -144,6 +145,8 @@ def test_one_gan_step_updates_both_networks_and_r1_only_when_due() -> None:
     config = {"mean": mean.tolist(), "std": std.tolist(), "lr_g": 1e-3, "lr_d": 1e-3, "ema_decay": 0.9,
               "model": emdm_training.model_config(section, 263, 8)}
     assert config["model"]["geo_weight"] is None and "guidance" not in config["model"]
+    assert config["model"]["geo_foot_lambda"] is None  # null: the foot term takes geometric_lambda
+    assert emdm_training.model_config(emdm_section(foot_lambda=3.0), 263, 8)["geo_foot_lambda"] == 3.0
     comps = emdm_training.build(config)
     assert set(comps.models) == {"generator", "discriminator"} and set(comps.optimizers) == {"g", "d"}
     assert all(opt.defaults["betas"] == (0.5, 0.9) for opt in comps.optimizers.values())
