@@ -189,8 +189,8 @@ def training_timesteps(timesteps: Sequence[int], batch: int, num_train_steps: in
     choices = torch.as_tensor(list(timesteps), dtype=torch.long)
     if choices.numel() == 0 or choices.min() < 0 or choices.max() >= num_train_steps:
         raise ValueError(f"timesteps: expected a non-empty list in [0, {num_train_steps}), got {list(timesteps)}")
-    device = generator.device if generator is not None else "cpu"
-    return choices[torch.randint(0, len(choices), (batch,), generator=generator, device=device).cpu()]
+    device = generator.device if generator is not None else torch.device("cpu")
+    return choices.to(device)[torch.randint(0, len(choices), (batch,), generator=generator, device=device)]
 
 
 def controlnet_loss(
