@@ -609,19 +609,12 @@ def training_loss(
     word_mask: Tensor,
     generator: torch.Generator | None = None,
     p_uncond: float = 0.0,
-    snr_gamma: float | None = None,
 ) -> Tensor:
-    """Eq. 4, masked: ``sum_{valid (b, n, d)} w_b (eps_theta(x_t, t, text) - eps)^2 / (valid frames * D)``.
+    """Eq. 4, masked: ``sum_{valid (b, n, d)} (eps_theta(x_t, t, text) - eps)^2 / (valid frames * D)``.
 
     t ~ U{0..T-1} (B,), then eps ~ N(0, I) like x0 (B, N, D), then (``p_uncond`` > 0) the caption
     dropout of :func:`drop_captions`, all from ``generator`` in that order;
     ``x_t = schedule.q_sample(x0, t, eps)``. A scalar over the whole batch (the code's mean).
-
-    ``w_b = 1`` (``snr_gamma`` None: the paper). Otherwise the Min-SNR-gamma weight of Hang et al.
-    (2023) for epsilon prediction, ``w_b = min(SNR(t_b), gamma) / SNR(t_b)`` with
-    ``SNR(t) = alphas_cumprod[t] / (1 - alphas_cumprod[t])``: the low-noise steps, whose epsilon is
-    nearly free to read off ``x_t``, weigh less, and the steps with ``SNR <= gamma`` keep weight 1
-    (ours, not MotionDiffuse's; docs/motiondiffuse.md).
     """
     dev = _gen_device(generator, x0.device)
     b, n, d = x0.shape
@@ -632,17 +625,7 @@ def training_loss(
     word_states, word_mask = drop_captions(word_states, word_mask, p_uncond, generator)
     pred = model(schedule.q_sample(x0, t, noise), t, word_states, word_mask, lengths_t)
     sq = torch.where(valid, (pred - noise).square(), 0.0)
-    if snr_gamma is not None:
-        sq = sq * snr_weight(schedule, t, snr_gamma).to(sq.dtype)[:, None, None]
     return sq.sum() / (valid.sum().to(sq.dtype) * d).clamp(min=1.0)
-
-
-def snr_weight(schedule: NoiseSchedule, t: Tensor, gamma: float) -> Tensor:
-    """Min-SNR-gamma loss weight of epsilon prediction, ``min(SNR(t), gamma) / SNR(t)`` (B,), float32 (computed in
-    float64: ``1 - alphas_cumprod`` near t = 0 is below float32's resolution of 1)."""
-    abar = schedule.alphas_cumprod.to(t.device)[t].double()
-    snr = abar / (1.0 - abar)
-    return (snr.clamp(max=gamma) / snr).float()
 
 
 def _model_device_dtype(model: nn.Module) -> tuple[torch.device, torch.dtype]:

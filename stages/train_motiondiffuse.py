@@ -5,8 +5,7 @@ through the one runner: one model, Adam (lr ``lr``, PyTorch's default betas, no 
 released code), the runner's gradient-norm clip (``loop.grad_clip``; the code: 0.5) and LR schedule
 (the code: constant), no EMA unless ``ema_decay`` > 0 (the code has none). One runner step is
 Eq. 4: t ~ U{0..T-1}, eps ~ N(0, I), the masked squared error of the predicted noise
-(:func:`models.motiondiffuse.training_loss`), each sample weighted by Min-SNR-gamma when ``snr_gamma``
-is set.
+(:func:`models.motiondiffuse.training_loss`).
 
 The data are the training motions of the feature store (normalised with its Mean/Std, random windows
 of ``crop_frames``), each with the word-token states of one of its captions from the store's frozen
@@ -16,8 +15,7 @@ the process-global torch RNG, which the runner seeds per rank and checkpoints, s
 bit-identical to an uninterrupted one. Writes ``artifacts/train_motiondiffuse/`` (model.pt).
 
 Section keys: ``lr``, ``ema_decay`` (0 = off), ``p_uncond`` (the caption dropout that classifier-free
-guidance needs, ours: :mod:`models.motiondiffuse` item 13; the code: 0), ``snr_gamma`` (null: Eq. 4 as the
-paper; a number: Min-SNR-gamma weights, ours), ``crop_frames`` (<= ``model.max_len``),
+guidance needs, ours: :mod:`models.motiondiffuse` item 13; the code: 0), ``crop_frames`` (<= ``model.max_len``),
 ``num_train_timesteps``, ``beta_start``, ``beta_end`` (linear betas, rescaled by 1000 / T as the code),
 ``model`` (the network sizes of :class:`models.motiondiffuse.MotionDiffuseConfig`; ``feature_dim`` and
 ``text_dim`` = the encoder's ``token_dim`` come from the store) and ``loop`` (the runner's).
@@ -43,8 +41,8 @@ SECTION = "train_motiondiffuse"
 #: The model's name in checkpoints (``model.pt``'s ``models`` / ``ema``).
 MODEL = "denoiser"
 #: Keys of the ``train_motiondiffuse`` params section (``loop`` is the runner's, checked by the skeleton).
-SECTION_KEYS = ("lr", "ema_decay", "p_uncond", "snr_gamma", "crop_frames", "num_train_timesteps", "beta_start",
-                "beta_end", "model", "loop")
+SECTION_KEYS = ("lr", "ema_decay", "p_uncond", "crop_frames", "num_train_timesteps", "beta_start", "beta_end", "model",
+                "loop")
 #: Keys of ``train_motiondiffuse.model``: the network sizes (``feature_dim``/``text_dim`` come from the store,
 #: the schedule from the section's keys above).
 MODEL_KEYS = ("width", "layers", "heads", "ff_dim", "dropout", "text_layers", "text_heads", "text_ff_dim",
@@ -70,8 +68,7 @@ def build(config: dict) -> Components:
 def step(batch: dict, ctx: StepContext) -> dict[str, torch.Tensor]:
     """One Adam step on Eq. 4's masked epsilon MSE (t, eps, then the caption dropout, from the global RNG)."""
     loss = training_loss(ctx.models[MODEL], ctx.frozen["schedule"], batch["motion"], batch["length"],
-                         batch["tokens"], batch["token_mask"], p_uncond=ctx.config["p_uncond"],
-                         snr_gamma=ctx.config["snr_gamma"])
+                         batch["tokens"], batch["token_mask"], p_uncond=ctx.config["p_uncond"])
     ctx.update(loss)
     return {"loss": loss.detach()}
 
@@ -92,8 +89,6 @@ def check_section(cfg: dict[str, Any]) -> None:
     check_number(cfg, "lr", SECTION, low=0.0, low_open=True)
     check_number(cfg, "ema_decay", SECTION, low=0.0, high=1.0, high_open=True)
     check_number(cfg, "p_uncond", SECTION, low=0.0, high=1.0, high_open=True)
-    if cfg["snr_gamma"] is not None:
-        check_number(cfg, "snr_gamma", SECTION, low=0.0, low_open=True)
     check_number(cfg, "crop_frames", SECTION, low=1, integer=True)
     steps = check_number(cfg, "num_train_timesteps", SECTION, low=1, integer=True)
     check_number(cfg, "beta_start", SECTION, low=0.0, low_open=True)
@@ -152,7 +147,6 @@ def stage_config(params: dict[str, Any]) -> dict[str, Any]:
         "features_dir": str(store.path), "mean": store.mean.tolist(), "std": store.std.tolist(),
         "crop_frames": cfg["crop_frames"], "max_text_tokens": int(encoder["max_length"]), "lr": float(cfg["lr"]),
         "ema_decay": float(cfg["ema_decay"]), "p_uncond": float(cfg["p_uncond"]),
-        "snr_gamma": None if cfg["snr_gamma"] is None else float(cfg["snr_gamma"]),
         "model": model_config(cfg, store.feature_dim, int(encoder["token_dim"])),
     }
     if out["model"]["input_skip"] and out["model"]["skip_kernel"] > 1:

@@ -74,7 +74,6 @@ def test_paper_profile_keeps_motiondiffuses_optimiser_and_sampler():
     schedule = ("lr_schedule", "warmup_steps", "min_lr_ratio", "grad_clip")
     assert (paper["lr"], *(paper["loop"][k] for k in schedule)) == (2e-4, "constant", 0, 0.0, 0.5)
     assert (paper["p_uncond"], params["sample"]["motiondiffuse_guidance"]) == (0.0, 1.0)
-    assert paper["snr_gamma"] is None  # Eq. 4 unweighted
 
 
 def test_paper_profile_keeps_emdms_constant_rates_and_lambdas():

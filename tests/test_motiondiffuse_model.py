@@ -26,7 +26,6 @@ from models.motiondiffuse import (
     null_caption,
     part_feature_mask,
     sample_motiondiffuse,
-    snr_weight,
     softmax_attention,
     time_varied_model_fn,
     training_loss,
@@ -247,42 +246,6 @@ def test_training_loss_of_oracle_is_zero_and_of_zero_model_is_masked_noise_energ
     noise = torch.randn(x0.shape, generator=g)
     expected = sum(float(noise[b, : int(n)].square().sum()) for b, n in enumerate(lengths)) / (15 * D)
     assert float(loss) == pytest.approx(expected, rel=1e-5)
-
-
-def test_snr_weight_known_values_on_the_papers_schedule() -> None:
-    """Linear betas 1e-4 ... 0.02 over 1000 steps: SNR(0) = (1 - 1e-4) / 1e-4 = 9999, so gamma 5 weighs t = 0 by
-    5 / 9999; the noisiest steps (SNR far below 5) keep weight 1, and the weight never falls as t grows."""
-    schedule = MotionDiffuseConfig(**{**TINY, "num_train_timesteps": 1000}).make_schedule()
-    w = snr_weight(schedule, torch.arange(1000), 5.0)
-    assert float(w[0]) == pytest.approx(5.0 / 9999.0, rel=1e-4)
-    assert torch.equal(w[500:], torch.ones(500))
-    assert bool((w[1:] >= w[:-1]).all())
-    abar = schedule.alphas_cumprod.double()
-    first_unit = int((abar / (1 - abar) <= 5.0).nonzero()[0])  # the first step whose SNR is at most gamma
-    assert float(w[first_unit]) == 1.0 and float(w[first_unit - 1]) < 1.0
-
-
-def test_training_loss_with_snr_gamma_weighs_each_sample_by_its_min_snr_weight() -> None:
-    """The zero model's per-sample noise energy, weighted by min(SNR, gamma) / SNR of its own t, over the same
-    valid count; a gamma above every SNR gives back the unweighted loss."""
-    schedule = MotionDiffuseConfig(**TINY).make_schedule()
-    x0, lengths = torch.randn(3, 8, D, generator=_gen(9)), torch.tensor([8, 5, 2])
-    ws, wm = _text(b=3, valid=(3, 5, 1))
-
-    def zero_model(x_t: Tensor, *args: object) -> Tensor:
-        return torch.zeros_like(x_t)
-
-    g = _gen(12)
-    t = sample_timesteps(3, schedule.num_steps, g)
-    noise = torch.randn(x0.shape, generator=g)
-    abar = schedule.alphas_cumprod[t].double()
-    weight = torch.minimum(abar / (1 - abar), torch.tensor(2.0, dtype=torch.float64)) / (abar / (1 - abar))
-    expected = sum(float(weight[b]) * float(noise[b, : int(n)].square().sum()) for b, n in enumerate(lengths))
-    loss = training_loss(zero_model, schedule, x0, lengths, ws, wm, _gen(12), snr_gamma=2.0)  # type: ignore[arg-type]
-    assert float(loss) == pytest.approx(expected / (15 * D), rel=1e-5)
-    plain = training_loss(zero_model, schedule, x0, lengths, ws, wm, _gen(12))  # type: ignore[arg-type]
-    huge = training_loss(zero_model, schedule, x0, lengths, ws, wm, _gen(12), snr_gamma=1e9)  # type: ignore[arg-type]
-    assert float(huge) == pytest.approx(float(plain), rel=1e-6) and float(loss) < float(plain)
 
 
 def test_training_loss_backpropagates_into_the_network() -> None:

@@ -53,9 +53,8 @@ LOOP = {"seed": 0, "batch_size": 8, "max_steps": 6, "grad_clip": 0.5, "lr_schedu
 
 def section(**overrides: Any) -> dict[str, Any]:
     """A tiny ``train_motiondiffuse`` section (EMA and caption dropout on, so a resume must restore both)."""
-    return {"lr": 2e-4, "ema_decay": 0.9, "p_uncond": 0.25, "snr_gamma": None, "crop_frames": 64,
-            "num_train_timesteps": 100, "beta_start": 1e-4, "beta_end": 0.02, "model": dict(TINY_MODEL),
-            "loop": dict(LOOP)} | overrides
+    return {"lr": 2e-4, "ema_decay": 0.9, "p_uncond": 0.25, "crop_frames": 64, "num_train_timesteps": 100,
+            "beta_start": 1e-4, "beta_end": 0.02, "model": dict(TINY_MODEL), "loop": dict(LOOP)} | overrides
 
 
 @pytest.fixture(scope="module")
@@ -80,8 +79,6 @@ def params(small_store) -> dict[str, Any]:
     ({"ema_decay": True}, "train_motiondiffuse.ema_decay"),
     ({"p_uncond": 1.0}, "train_motiondiffuse.p_uncond"),
     ({"p_uncond": -0.1}, "train_motiondiffuse.p_uncond"),
-    ({"snr_gamma": 0.0}, "train_motiondiffuse.snr_gamma"),
-    ({"snr_gamma": "5"}, "train_motiondiffuse.snr_gamma"),
     ({"crop_frames": 65}, "train_motiondiffuse.crop_frames"),
     ({"num_train_timesteps": 10.5}, "train_motiondiffuse.num_train_timesteps"),
     ({"beta_end": 1e-5}, "train_motiondiffuse.beta_end"),
@@ -130,8 +127,7 @@ def _batch() -> dict[str, torch.Tensor]:
 
 
 def test_steps_lower_the_loss_with_clipping_and_no_ema_by_default() -> None:
-    config = {"lr": 1e-3, "ema_decay": 0.0, "p_uncond": 0.0, "snr_gamma": None,
-              "model": stage.model_config(section(), D, E)}
+    config = {"lr": 1e-3, "ema_decay": 0.0, "p_uncond": 0.0, "model": stage.model_config(section(), D, E)}
     comps = stage.build(config)
     assert set(comps.models) == set(comps.optimizers) == {"denoiser"} and comps.ema == {}
     assert isinstance(comps.optimizers["denoiser"], torch.optim.Adam) and comps.frozen["schedule"].num_steps == 100
@@ -146,21 +142,6 @@ def test_steps_lower_the_loss_with_clipping_and_no_ema_by_default() -> None:
     assert "grad_norm/denoiser" in ctx.extra_metrics
     assert losses[0] == pytest.approx(1.0, abs=0.3)  # a fresh model predicts 0: the loss is E[eps^2]
     assert all(b < a for a, b in zip(losses, losses[1:], strict=False)), losses
-
-
-def test_the_step_weighs_its_loss_by_snr_gamma() -> None:
-    """``snr_gamma`` reaches the loss: a gamma above every SNR is the unweighted step, a small one weighs it down."""
-    def first_loss(gamma: float | None) -> float:
-        config = {"lr": 1e-3, "ema_decay": 0.0, "p_uncond": 0.0, "snr_gamma": gamma,
-                  "model": stage.model_config(section(), D, E)}
-        comps = stage.build(config)
-        ctx = StepContext(config, comps.models, comps.optimizers, {}, comps.frozen, torch.device("cpu"), 0, 1, 0.5)
-        torch.manual_seed(0)
-        return float(stage.step(_batch(), ctx)["loss"])
-
-    plain = first_loss(None)
-    assert first_loss(1e9) == pytest.approx(plain, rel=1e-6)
-    assert first_loss(0.01) < 0.9 * plain
 
 
 # --------------------------------------------------------------------------------------------------
