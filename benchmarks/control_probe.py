@@ -6,7 +6,8 @@ Trains in-process into ``/tmp/probe/cn_<name>`` on top of the student, teacher, 
 under ``$ARTIFACTS`` (symlinked); with the name ``existing`` it skips training and probes
 ``$ARTIFACTS/train_controlnet``. Then, on the first ``$ITEMS`` test motions (first caption, full
 length, seed 0, ``sample.motionlcm_guidance``), pelvis hints at ``$DENSITY``: the control errors
-of MotionLCM-1 without control, of the ControlNet, and of the noise refinement at several (steps,
+of MotionLCM-1 without control, of the ControlNet (again with each step count of ``LCM_STEPS``, e.g. "2 4":
+MotionLCM's multistep sampling, fresh noise between steps from seed 1), and of the noise refinement at several (steps,
 lr) settings (``REFINE_SETTINGS``, default "5:0.1 10:0.1 ..."), plus batch-1 seconds per motion of
 the ControlNet with 0/10/20/30 refinement steps (``REFINE=0`` skips the refinement rows and timings).
 Each row also gets the T2M evaluator's FID against the same items' real motions, R@3 (groups
@@ -90,9 +91,11 @@ def noise(index: slice = slice(None)) -> torch.Tensor:
     return torch.randn(shape, generator=torch.Generator().manual_seed(0))[index]
 
 
-def latents(model: torch.nn.Module, index: slice = slice(None), x_T: torch.Tensor | None = None) -> torch.Tensor:
-    return motionlcm_latents(model, schedule, text[index], 1, w, text_tokens=tokens[index],
-                             text_mask=token_mask[index], x_T=noise(index) if x_T is None else x_T)
+def latents(model: torch.nn.Module, index: slice = slice(None), x_T: torch.Tensor | None = None,
+            steps: int = 1) -> torch.Tensor:
+    return motionlcm_latents(model, schedule, text[index], steps, w, torch.Generator().manual_seed(1),
+                             text_tokens=tokens[index], text_mask=token_mask[index],
+                             x_T=noise(index) if x_T is None else x_T)
 
 
 def errors(z: torch.Tensor, project: bool = False) -> dict[str, float]:
@@ -124,6 +127,9 @@ def refine(model: torch.nn.Module, steps: int, lr: float, index: slice = slice(N
 report("uncontrolled", latents(student))
 controlled = ControlledStudent(student, controlnet, hint, hint_mask)
 report("controlnet", latents(controlled))
+for lcm_steps in os.environ.get("LCM_STEPS", "").split():
+    report(f"uncontrolled steps={lcm_steps}", latents(student, steps=int(lcm_steps)))
+    report(f"controlnet steps={lcm_steps}", latents(controlled, steps=int(lcm_steps)))
 if os.environ.get("REFINE", "1") == "0":
     sys.exit(0)
 for steps, lr in REFINE:
