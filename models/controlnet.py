@@ -19,12 +19,6 @@ Architecture (:class:`MotionControlNet`):
   the positions. At P = 1 the encoder (a transformer over T + L tokens) is about half the cost of
   a training step (the other half: decoding for Eq. 9); P = 4 shortens its sequence fourfold
   (``benchmarks/controlnet_step.py``, docs/controlnet.md).
-  With ``path_features`` (ours; the paper: off) every frame also carries, per joint, three
-  rotation-invariant descriptors of the hint's path (:func:`path_features`): its horizontal step
-  length, the sideways part of that step relative to the previous step's direction (the turn), and
-  its vertical step. The VAE's root features are heading-relative velocities, so these are nearly
-  the quantities the latent has to encode; from global positions alone the encoder would have to
-  learn the rotation into each frame's heading itself.
 - **ControlNet**: a trainable copy of the MotionLCM student denoiser (its guidance projection and
   word-token attention included), given ``z_t + c_h`` and the same t, text and w. Layer i's output
   goes through its own **zero-initialised** ``Linear(h -> h)``; the results are the residuals the
@@ -78,7 +72,6 @@ class ControlConfig:
     ff_dim: int = 256
     dropout: float = 0.0
     patch_frames: int = 1
-    path_features: bool = False
     train_joints: Sequence[int] = field(default=(0,))
 
     def __post_init__(self) -> None:
@@ -95,36 +88,6 @@ class ControlConfig:
         return {k: list(v) if isinstance(v, tuple | list) else v for k, v in asdict(self).items()}
 
 
-#: Scale of :func:`path_features`: metres per frame times 20, metres per second at HumanML3D's 20 fps (an
-#: order-1 input for the encoder's first Linear, which learns the rest).
-PATH_SCALE = 20.0
-#: Metres per frame below which a step's direction fades out of the turn descriptor (1 mm).
-PATH_EPS = 1e-3
-
-
-def path_features(hint: Tensor, mask: Tensor) -> Tensor:
-    """Rotation-invariant steps of the hint's path: (B, T, J, 3) positions, (B, T, J) mask -> (B, T, J, 3).
-
-    For frame k and joint j with the step ``d_k = p_k - p_{k-1}`` (horizontal part ``h_k``, on the x-z
-    floor): ``|h_k|``, ``cross(u_{k-1}, h_k)`` with ``u_{k-1} = h_{k-1} / (|h_{k-1}| + PATH_EPS)``
-    (positive for a step that bends toward +x of a path heading +z; ~|h_k| times the turn's sine) and
-    ``d_k``'s height, each times :data:`PATH_SCALE`. A descriptor is 0 unless every frame it reads
-    is controlled (k and k - 1; the turn also k - 2), so frame 0 is always 0 and NaN hints outside the
-    mask never enter. Unchanged by a rotation of the hint about the vertical axis or a shift of it.
-    """
-    pos = torch.where(mask[..., None], hint, 0.0)
-    step = pos[:, 1:] - pos[:, :-1]  # (B, T-1, J, 3)
-    both = mask[:, 1:] & mask[:, :-1]
-    flat = step[..., [0, 2]]
-    length = flat.norm(dim=-1)
-    unit = flat[:, :-1] / (length[:, :-1, ..., None] + PATH_EPS)
-    turn = unit[..., 1] * flat[:, 1:, ..., 0] - unit[..., 0] * flat[:, 1:, ..., 1]
-    turn = torch.where(both[:, 1:] & both[:, :-1], turn, 0.0)
-    steps = torch.stack([torch.where(both, length, 0.0), nn.functional.pad(turn, (0, 0, 1, 0)),
-                         torch.where(both, step[..., 1], 0.0)], dim=-1)
-    return nn.functional.pad(steps, (0, 0, 0, 0, 1, 0)) * PATH_SCALE
-
-
 class TrajectoryEncoder(nn.Module):
     """Hint (B, T, J, 3) and mask (B, T, J) -> condition (B, L, C); see the module docstring."""
 
@@ -136,7 +99,7 @@ class TrajectoryEncoder(nn.Module):
         self.config = config
         self.register_buffer("hint_mean", torch.tensor(config.hint_mean, dtype=torch.float32).view(-1, 3))
         self.register_buffer("hint_std", torch.tensor(config.hint_std, dtype=torch.float32).view(-1, 3))
-        per_frame = (3 + (config.patch_frames > 1) + 3 * config.path_features) * config.joints_num
+        per_frame = 3 * config.joints_num if config.patch_frames == 1 else 4 * config.joints_num
         self.input = nn.Linear(config.patch_frames * per_frame, config.dim)
         self.global_tokens = nn.Parameter(torch.randn(latent_tokens, config.dim) * 0.02)
         self.transformer = SkipTransformer(config.dim, config.layers, config.heads, config.ff_dim, config.dropout)
@@ -148,16 +111,11 @@ class TrajectoryEncoder(nn.Module):
         b, t, j, _ = hint.shape
         p = self.config.patch_frames
         x = torch.where(mask[..., None], (hint - self.hint_mean) / self.hint_std, 0.0)  # NaN outside: ignored
-        parts = [x.reshape(b, t, 3 * j)]
-        if p > 1:  # each frame's mask bits beside its positions (module docstring)
-            parts.append(mask.to(x.dtype))
-        if self.config.path_features:
-            parts.append(path_features(hint, mask).reshape(b, t, 3 * j))
-        x = torch.cat(parts, dim=-1)
+        x = x.reshape(b, t, 3 * j)
         controlled = mask.any(-1)
-        if p > 1:  # P frames per token
+        if p > 1:  # P frames per token, each frame's mask bits beside its positions (module docstring)
             pad = (-t) % p
-            x = nn.functional.pad(x, (0, 0, 0, pad)).reshape(b, -1, p * x.shape[-1])
+            x = nn.functional.pad(torch.cat([x, mask.to(x.dtype)], dim=-1), (0, 0, 0, pad)).reshape(b, -1, p * 4 * j)
             controlled = nn.functional.pad(controlled, (0, pad)).reshape(b, -1, p).any(-1)
         tokens = torch.cat([self.global_tokens.expand(b, -1, -1), self.input(x)], dim=1)
         tokens = tokens + sinusoidal_positions(tokens.shape[1], tokens.shape[2], device=hint.device)[None]

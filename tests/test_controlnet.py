@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import math
 import re
 
 import numpy as np
@@ -14,15 +13,12 @@ from torch import nn
 from data.control import evaluation_mask, joint_ids, keyframe_count, training_mask
 from data.features import recover_from_ric
 from models.controlnet import (
-    PATH_EPS,
-    PATH_SCALE,
     ControlConfig,
     ControlledStudent,
     MotionControlNet,
     control_loss,
     controlnet_loss,
     decode_joints,
-    path_features,
     refine_noise,
     training_timesteps,
 )
@@ -101,14 +97,13 @@ def test_controlnet_copies_the_student_and_only_it_trains():
     assert "transformer.norm.weight" not in copied and "latent_out.weight" not in copied  # unused by a ControlNet
 
 
-@pytest.mark.parametrize(("patch_frames", "path"), [(1, False), (4, False), (1, True), (4, True)])  # 4: 3 tokens
-def test_encoder_ignores_uncontrolled_entries(patch_frames: int, path: bool):
+@pytest.mark.parametrize("patch_frames", [1, 4])  # 4: the 10 frames padded to 3 tokens of 4
+def test_encoder_ignores_uncontrolled_entries(patch_frames: int):
     """Hint values outside the mask never reach the ControlNet; the mask itself does."""
     base = student()
-    controlnet = MotionControlNet(base, control_config(patch_frames=patch_frames, path_features=path))
+    controlnet = MotionControlNet(base, control_config(patch_frames=patch_frames))
     randomise(controlnet)
     x = batch()
-    x["mask"][:, 3:6, 0] = True  # three consecutive controlled frames: every path descriptor is read
     out = controlnet.encoder(x["hint"], x["mask"])
     other = torch.where(x["mask"][..., None], x["hint"], torch.randn_like(x["hint"]) * 5)
     assert torch.allclose(controlnet.encoder(other, x["mask"]), out, atol=float32_atol(out))  # tests/tolerance.py
@@ -125,55 +120,7 @@ def test_encoder_ignores_uncontrolled_entries(patch_frames: int, path: bool):
     longer = torch.cat([x["hint"], torch.full_like(x["hint"][:, :2], float("nan"))], dim=1)
     longer_mask = torch.cat([x["mask"], torch.zeros_like(x["mask"][:, :2])], dim=1)
     assert torch.allclose(controlnet.encoder(longer, longer_mask), out, atol=float32_atol(out))
-    per_frame = 3 * J + (J if patch_frames > 1 else 0) + (3 * J if path else 0)
-    assert controlnet.encoder.input.in_features == patch_frames * per_frame
-
-
-def _circle(steps: int, radius: float, angle: float, sign: float = 1.0) -> torch.Tensor:
-    """(1, steps, 1, 3): a joint on a circle about (radius, 0, 0) at height 0.9, from the origin heading +z."""
-    phi = torch.arange(steps, dtype=torch.float64) * angle
-    x, z = sign * radius * (1 - torch.cos(phi)), radius * torch.sin(phi)
-    return torch.stack([x, torch.full_like(x, 0.9), z], dim=-1)[None, :, None].float()
-
-
-def test_path_features_known_values_on_a_line_and_a_circle():
-    """Step length, turn (|h|^2 sin(angle) / (|h| + eps)) and height step, times PATH_SCALE; a mirrored
-    circle turns the other way; frame 0 and the turn of frame 1 read 0."""
-    line = torch.zeros(1, 6, 1, 3)
-    line[0, :, 0, 0] = 0.05 * torch.arange(6)
-    line[0, :, 0, 1] = 0.01 * torch.arange(6)  # rising 1 cm per frame
-    feats = path_features(line, torch.ones(1, 6, 1, dtype=torch.bool))[0, :, 0]
-    assert torch.equal(feats[0], torch.zeros(3))
-    assert torch.allclose(feats[1:], torch.tensor([0.05, 0.0, 0.01]) * PATH_SCALE, atol=1e-5)
-    angle, radius = 0.1, 1.0
-    left = path_features(_circle(8, radius, angle), torch.ones(1, 8, 1, dtype=torch.bool))[0, :, 0]
-    chord = 2 * radius * math.sin(angle / 2)
-    assert torch.allclose(left[1:, 0], torch.full((7,), chord * PATH_SCALE), rtol=1e-4)
-    turn = chord ** 2 * math.sin(angle) / (chord + PATH_EPS) * PATH_SCALE
-    assert float(left[1, 1]) == 0.0 and torch.allclose(left[2:, 1], torch.full((6,), turn), rtol=1e-3)
-    right = path_features(_circle(8, radius, angle, sign=-1.0), torch.ones(1, 8, 1, dtype=torch.bool))[0, :, 0]
-    assert torch.allclose(right[:, 1], -left[:, 1], atol=1e-5) and torch.allclose(right[:, 0], left[:, 0])
-
-
-def test_path_features_ignore_rotation_shift_and_uncontrolled_frames():
-    """A rotation about the vertical axis and a shift leave them unchanged; a descriptor that reads an
-    uncontrolled frame is 0, and NaN there never enters."""
-    g = torch.Generator().manual_seed(3)
-    hint = torch.cumsum(torch.randn(2, 12, J, 3, generator=g) * 0.05, dim=1)
-    mask = torch.rand(2, 12, J, generator=g) > 0.3
-    feats = path_features(hint, mask)
-    c, s_ = math.cos(0.7), math.sin(0.7)
-    rot = torch.tensor([[c, 0.0, s_], [0.0, 1.0, 0.0], [-s_, 0.0, c]])
-    moved = hint @ rot.T + torch.tensor([1.5, 0.0, -2.0])
-    assert torch.allclose(path_features(moved, mask), feats, atol=1e-4)
-    holes = torch.where(mask[..., None], hint, float("nan"))
-    assert torch.equal(path_features(holes, mask), feats)
-    step_ok = torch.zeros_like(mask)
-    step_ok[:, 1:] = mask[:, 1:] & mask[:, :-1]
-    assert bool((feats[..., 0][~step_ok] == 0).all()) and bool((feats[..., 2][~step_ok] == 0).all())
-    turn_ok = torch.zeros_like(mask)
-    turn_ok[:, 2:] = step_ok[:, 2:] & step_ok[:, 1:-1]
-    assert bool((feats[..., 1][~turn_ok] == 0).all()) and bool((feats[..., 1][turn_ok] != 0).any())
+    assert controlnet.encoder.input.in_features == (3 * J if patch_frames == 1 else patch_frames * 4 * J)
 
 
 def test_patched_encoder_tells_a_controlled_frame_at_the_mean_from_an_uncontrolled_one():
