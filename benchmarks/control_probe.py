@@ -6,10 +6,12 @@ Trains in-process into ``/tmp/probe/cn_<name>`` on top of the student, teacher, 
 under ``$ARTIFACTS`` (symlinked); with the name ``existing`` it skips training and probes
 ``$ARTIFACTS/train_controlnet``. Then, on the first ``$ITEMS`` test motions (first caption, full
 length, seed 0, ``sample.motionlcm_guidance``), pelvis hints at ``$DENSITY``: the control errors
-of MotionLCM-1 without control, of the ControlNet (again with each step count of ``LCM_STEPS``, e.g. "2 4":
-MotionLCM's multistep sampling, fresh noise between steps from seed 1), and of the noise refinement at several (steps,
-lr) settings (``REFINE_SETTINGS``, default "5:0.1 10:0.1 ..."), plus batch-1 seconds per motion of
-the ControlNet with 0/10/20/30 refinement steps (``REFINE=0`` skips the refinement rows and timings).
+of MotionLCM-1 without control, of the ControlNet (again with each step count of ``LCM_STEPS``,
+e.g. "2 4": MotionLCM's multistep sampling, fresh noise between steps from seed 1; with ``HINT_ABLATION=1`` also
+given no hint and given the next motion's hint, still scored against each motion's own path: what it
+owes to the hint), and of the noise refinement at several (steps, lr) settings (``REFINE_SETTINGS``,
+default "5:0.1 10:0.1 ..."), plus batch-1 seconds per motion of the ControlNet with 0/10/20/30
+refinement steps (``REFINE=0`` skips the refinement rows and timings).
 Each row also gets the T2M evaluator's FID against the same items' real motions, R@3 (groups
 of 32), Diversity (``ITEMS=all`` for the whole test split) and the physical metrics; ``PROJECT=1``
 adds each row again after the root projection (:mod:`data.root_projection`). Prints one JSON line
@@ -127,6 +129,10 @@ def refine(model: torch.nn.Module, steps: int, lr: float, index: slice = slice(N
 report("uncontrolled", latents(student))
 controlled = ControlledStudent(student, controlnet, hint, hint_mask)
 report("controlnet", latents(controlled))
+if os.environ.get("HINT_ABLATION") == "1":
+    report("controlnet, no hint", latents(ControlledStudent(student, controlnet, hint, torch.zeros_like(hint_mask))))
+    report("controlnet, the next motion's hint",
+           latents(ControlledStudent(student, controlnet, hint.roll(1, 0), hint_mask.roll(1, 0))))
 for lcm_steps in os.environ.get("LCM_STEPS", "").split():
     report(f"uncontrolled steps={lcm_steps}", latents(student, steps=int(lcm_steps)))
     report(f"controlnet steps={lcm_steps}", latents(controlled, steps=int(lcm_steps)))
