@@ -131,8 +131,9 @@ controlled = ControlledStudent(student, controlnet, hint, hint_mask)
 report("controlnet", latents(controlled))
 if os.environ.get("HINT_ABLATION") == "1":
     report("controlnet, no hint", latents(ControlledStudent(student, controlnet, hint, torch.zeros_like(hint_mask))))
+    other_mask = hint_mask.roll(1, 0) & torch.from_numpy(valid)[..., None]  # within each motion's own length
     report("controlnet, the next motion's hint",
-           latents(ControlledStudent(student, controlnet, hint.roll(1, 0), hint_mask.roll(1, 0))))
+           latents(ControlledStudent(student, controlnet, hint.roll(1, 0), other_mask)))
 for lcm_steps in os.environ.get("LCM_STEPS", "").split():
     report(f"uncontrolled steps={lcm_steps}", latents(student, steps=int(lcm_steps)))
     report(f"controlnet steps={lcm_steps}", latents(controlled, steps=int(lcm_steps)))
