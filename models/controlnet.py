@@ -210,6 +210,7 @@ def controlnet_loss(
     control_weight: float = 1.0,
     num_ddim_steps: int = 10,
     timesteps: Sequence[int] | None = None,
+    text_dropout: float = 0.0,
     text_tokens: Tensor | None = None,
     text_mask: Tensor | None = None,
     generator: torch.Generator | None = None,
@@ -219,6 +220,10 @@ def controlnet_loss(
     t is uniform on the LCM solver grid of ``num_ddim_steps`` points (MotionLCM), or uniform over
     ``timesteps`` when given (e.g. ``[799]``, the one step every controlled row samples at).
     ``mean``/``std``: the feature normalisation (D,).
+    ``text_dropout`` (ours; MotionLCM: 0): each sample's caption is replaced, with that probability, by
+    the student's unconditional embedding and no word tokens, for the student and the ControlNet alike.
+    Such a sample's motion can only be told by its hint, which pushes the ControlNet to read the hint
+    rather than learn a correction from the text. No random number is drawn when it is 0.
     Returns ``{"total", "latent", "control"}`` (``control`` is computed, for logging, even when
     ``control_weight`` is 0; its gradient is then unused).
     """
@@ -229,6 +234,10 @@ def controlnet_loss(
         t = training_timesteps(timesteps, b, schedule.num_steps, generator).to(z0.device)
     z_t = schedule.q_sample(z0, t, torch.randn(z0.shape, generator=generator, device=z0.device, dtype=z0.dtype))
     w = w_range[0] + (w_range[1] - w_range[0]) * torch.rand(b, generator=generator, device=z0.device)
+    if text_dropout > 0:
+        drop = torch.rand(b, generator=generator, device=z0.device) < text_dropout
+        text_emb = torch.where(drop[:, None], student.null_text_like(text_emb), text_emb)
+        text_mask = None if text_mask is None else text_mask & ~drop[:, None]
     words = {"time_cond": guidance_embedding(w), "text_tokens": text_tokens, "text_mask": text_mask}
     out = ControlledStudent(student, controlnet, hint, mask)(z_t, t, text_emb, **words)
     z0_hat = lcm_consistency_fn(schedule, out, z_t, t, student.config.prediction_type)

@@ -54,7 +54,8 @@ def step(batch: dict, ctx: StepContext) -> dict[str, torch.Tensor]:
         ctx.models["controlnet"], student, ctx.frozen["vae"], ctx.frozen["schedule"], z0, batch["text"], joints,
         mask, lengths, mean=torch.tensor(cfg["mean"], device=z0.device), std=torch.tensor(cfg["std"], device=z0.device),
         w_range=tuple(cfg["w_range"]), control_weight=cfg["control_weight"], num_ddim_steps=cfg["num_ddim_steps"],
-        timesteps=cfg["timesteps"], text_tokens=batch.get("tokens"), text_mask=batch.get("token_mask"))
+        timesteps=cfg["timesteps"], text_dropout=cfg["text_dropout"], text_tokens=batch.get("tokens"),
+        text_mask=batch.get("token_mask"))
     ctx.update(losses["total"])
     return {"loss": losses["total"].detach(), "latent": losses["latent"], "control": losses["control"]}
 
@@ -68,7 +69,7 @@ def hint_statistics(features_dir: Path) -> tuple[list[float], list[float]]:
 
 
 SECTION = "train_controlnet"
-SECTION_KEYS = ("lr", "weight_decay", "control_weight", "timesteps", "train_joints", "encoder", "loop")
+SECTION_KEYS = ("lr", "weight_decay", "control_weight", "timesteps", "text_dropout", "train_joints", "encoder", "loop")
 
 
 def check_section(params: dict[str, Any]) -> None:
@@ -78,6 +79,7 @@ def check_section(params: dict[str, Any]) -> None:
     check_number(cfg, "lr", SECTION, low=0.0, low_open=True)
     check_number(cfg, "weight_decay", SECTION, low=0.0)
     check_number(cfg, "control_weight", SECTION, low=0.0)
+    check_number(cfg, "text_dropout", SECTION, low=0.0, high=1.0)
     steps = cfg["timesteps"]  # the upper bound, the student's schedule length, is checked by the loss
     if steps is not None and (not isinstance(steps, list) or not steps
                               or not all(isinstance(t, int) and not isinstance(t, bool) and t >= 0 for t in steps)):
@@ -105,7 +107,7 @@ def stage_config(params: dict[str, Any]) -> dict[str, Any]:
         **{key: student[key] for key in ("features_dir", "vae_dir", "mean", "std", "crop_frames", "max_text_tokens",
                                          "model", "w_range", "num_ddim_steps")},
         "control": control.to_dict(),
-        **{key: cfg[key] for key in ("lr", "weight_decay", "control_weight", "timesteps")},
+        **{key: cfg[key] for key in ("lr", "weight_decay", "control_weight", "timesteps", "text_dropout")},
     }
 
 

@@ -246,6 +246,29 @@ def test_controlnet_loss_at_listed_timesteps_equals_the_grid_of_that_point():
     assert not torch.allclose(loss(timesteps=[999]), loss(timesteps=[99]))
 
 
+def test_text_dropout_replaces_the_caption_by_the_unconditional_one():
+    """At dropout 1 every sample gets the student's null embedding and no word tokens, draw for draw; at 0
+    nothing changes and no random number is drawn (the default keeps the paper's training)."""
+    base, vae = student().requires_grad_(False), tiny_vae().requires_grad_(False)
+    controlnet = MotionControlNet(base, control_config())
+    randomise(controlnet)
+    x = batch(b=2, frames=12)
+    args = (controlnet, base, vae, SCHEDULE, torch.randn(2, 2, 8))
+    tail = (x["hint"], x["mask"], torch.tensor([12, 9]))
+    kwargs = {"mean": torch.zeros(D), "std": torch.full((D,), 0.1), "w_range": (1.0, 2.0), "control_weight": 1.0,
+              "text_tokens": x["text_tokens"]}
+
+    def loss(text_emb: torch.Tensor, text_mask: torch.Tensor, **extra) -> torch.Tensor:
+        with torch.no_grad():
+            return controlnet_loss(*args, text_emb, *tail, generator=torch.Generator().manual_seed(4),
+                                   text_mask=text_mask, **kwargs, **extra)["total"]
+
+    null, no_words = base.null_text_like(x["text_emb"]), torch.zeros_like(x["text_mask"])
+    assert torch.equal(loss(x["text_emb"], x["text_mask"], text_dropout=1.0), loss(null, no_words))
+    assert torch.equal(loss(x["text_emb"], x["text_mask"], text_dropout=0.0), loss(x["text_emb"], x["text_mask"]))
+    assert not torch.allclose(loss(null, no_words), loss(x["text_emb"], x["text_mask"]))
+
+
 def test_decode_joints_matches_the_numpy_recovery():
     vae = tiny_vae()
     z = torch.randn(2, 2, 8)
@@ -331,6 +354,12 @@ def test_stage_check_names_bad_timesteps(value):
         train_controlnet.check_section(params)
     train_controlnet.check_section(restrict_params(load_params(["train_controlnet.timesteps=[0,799]"]),
                                                    train_controlnet.STAGE.params))
+
+
+@pytest.mark.parametrize("value", ["-0.1", "1.5", "yes"])
+def test_stage_check_names_a_bad_text_dropout(value):
+    with pytest.raises(ConfigError, match=re.escape("train_controlnet.text_dropout: expected a number")):
+        train_controlnet.check_section(load_params([f"train_controlnet.text_dropout={value}"]))
 
 
 @pytest.mark.parametrize(("value", "message"), [
