@@ -1,0 +1,90 @@
+"""Foot skating and pelvis speed of the test motions a caption's words pick, real, through the VAE and generated.
+
+    python benchmarks/skating_by_caption.py [--words walk forward] [--models mld motionlcm] [key=value ...]
+
+The evaluation's skating column averages over every test motion, most of which barely move their
+feet. This splits the test split in two: the motions with a caption holding every one of
+``--words`` (as substrings, lower case) and the rest. For each group it prints the foot skating
+ratio (:func:`data.physics.foot_skating_ratio`) and the mean horizontal pelvis speed (m/s) of the
+real motions, of their round trip through the motion VAE (posterior mean), and of each
+``--models`` generator (``stages.generate``'s, defaults) given each motion's first matching caption
+(the rest: its first caption) and its length, in one batch per group, seed 0. Used for
+docs/findings.md.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from data.physics import foot_skating_ratio  # noqa: E402
+from data.skeleton import Skeleton, get_skeleton  # noqa: E402
+from pipelines.cli import artifacts_dir, repo_path  # noqa: E402
+from pipelines.config import load_params  # noqa: E402
+from pipelines.mld_family import VAEReconstruction, load_vae  # noqa: E402
+from pipelines.registry import EvalContext, GenerateOptions, family  # noqa: E402
+
+
+def first_match(captions: Sequence[str], words: Sequence[str]) -> str | None:
+    """The first caption holding every word (lower case substrings), or None."""
+    for caption in captions:
+        if all(word.lower() in caption.lower() for word in words):
+            return caption
+    return None
+
+
+def group_measures(joints: Sequence[np.ndarray], skeleton: Skeleton) -> dict[str, float]:
+    """Mean foot skating ratio and mean horizontal pelvis speed (m/s) over motions (T_i, J, 3)."""
+    speeds = [np.linalg.norm(np.diff(j[:, 0, [0, 2]], axis=0), axis=1).mean() * skeleton.fps for j in joints]
+    return {"skating": float(np.mean([foot_skating_ratio(j, skeleton) for j in joints])),
+            "speed": float(np.mean(speeds))}
+
+
+def padded(motions: Sequence[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    """Motions (T_i, D) -> zero-padded (B, T, D) and their lengths (B,)."""
+    lengths = np.array([len(m) for m in motions])
+    out = np.zeros((len(motions), lengths.max(), motions[0].shape[1]), np.float32)
+    for k, motion in enumerate(motions):
+        out[k, : len(motion)] = motion
+    return out, lengths
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--words", nargs="+", default=["walk", "forward"])
+    parser.add_argument("--models", nargs="*", default=["mld", "motionlcm"])
+    parser.add_argument("overrides", nargs="*")
+    args = parser.parse_args()
+    torch.set_num_threads(2)
+    params = load_params(args.overrides)
+    ctx = EvalContext(params, artifacts_dir(params), repo_path(params, "features.out"))
+    skeleton = get_skeleton(params["data"]["skeleton"])
+    items, motions = ctx.store.split("test"), ctx.store.normalised_motions("test")
+    matched = [first_match(item.captions, args.words) for item in items]
+    groups = {"matching": [k for k, c in enumerate(matched) if c is not None],
+              "rest": [k for k, c in enumerate(matched) if c is None]}
+    vae = VAEReconstruction(load_vae(ctx.trained("train_vae")))
+    generators = {name: family(name).build_generator(ctx, GenerateOptions()) for name in args.models}
+    for group, index in groups.items():
+        x, lengths = padded([motions[k] for k in index])
+        rows = {"real": ctx.store.to_joints(x, lengths),
+                "VAE": ctx.store.to_joints(vae.reconstruct(x, lengths), lengths)}
+        captions = [matched[k] or items[k].captions[0] for k in index]
+        for name, generator in generators.items():
+            rows[name] = ctx.store.to_joints(generator.sample(ctx.store.encode_prompts(captions), lengths, 0), lengths)
+        for row, joints in rows.items():
+            print(json.dumps({"words": args.words, "group": group, "motions": len(index), "row": row,
+                              **{key: round(value, 3) for key, value in group_measures(joints, skeleton).items()}}),
+                  flush=True)
+
+
+if __name__ == "__main__":
+    main()
