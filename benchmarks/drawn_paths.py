@@ -83,7 +83,7 @@ def main() -> None:
     fps = float(skeleton.fps)
     pelvis = CONTROL_JOINTS["pelvis"]
     lengths = np.full(args.samples, args.length)
-    totals: list[list[float]] = [[], [], []]  # error, off_path, end over every case's samples
+    every: list[dict[str, float]] = []  # every case's samples
     for caption, shape, size in CASES:
         path = make_trajectory(shape, args.length, size=size, height=float(ctx.store.mean[3]), fps=fps)
         text = ctx.store.encode_prompts([caption] * args.samples)
@@ -94,7 +94,7 @@ def main() -> None:
         joints = ctx.store.to_joints(motions, lengths)
         measures = [path_measures(j[:, pelvis], path, fps) for j in joints]
         mean = {key: float(np.mean([m[key] for m in measures])) for key in measures[0]}
-        totals = [totals[k] + [m[key] for m in measures] for k, key in enumerate(("error", "off_path", "end"))]
+        every += measures
         print(json.dumps({
             "caption": caption, "shape": shape, "size": size,
             "path_speed": round(path_measures(path, path, fps)["speed"], 3),
@@ -103,8 +103,8 @@ def main() -> None:
             "skating": round(float(np.mean([foot_skating_ratio(j, skeleton) for j in joints])), 3),
         }), flush=True)
     print(json.dumps({"model": args.model, "artifacts": str(artifacts_dir(params)),
-                      **{f"mean_{key}_m": round(float(np.mean(values)), 3)
-                         for key, values in zip(("error", "off_path", "end"), totals, strict=True)}}))
+                      **{f"mean_{key}_m": round(float(np.mean([m[key] for m in every])), 3)
+                         for key in ("error", "off_path", "end")}}))
 
 
 if __name__ == "__main__":

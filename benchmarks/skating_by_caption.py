@@ -25,6 +25,7 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from data.motion_dataset import pad_motions  # noqa: E402
 from data.physics import foot_skating_ratio  # noqa: E402
 from data.skeleton import Skeleton, get_skeleton  # noqa: E402
 from pipelines.cli import artifacts_dir, repo_path  # noqa: E402
@@ -48,15 +49,6 @@ def group_measures(joints: Sequence[np.ndarray], skeleton: Skeleton) -> dict[str
             "speed": float(np.mean(speeds))}
 
 
-def padded(motions: Sequence[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
-    """Motions (T_i, D) -> zero-padded (B, T, D) and their lengths (B,)."""
-    lengths = np.array([len(m) for m in motions])
-    out = np.zeros((len(motions), lengths.max(), motions[0].shape[1]), np.float32)
-    for k, motion in enumerate(motions):
-        out[k, : len(motion)] = motion
-    return out, lengths
-
-
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--words", nargs="+", default=["walk", "forward"])
@@ -74,12 +66,13 @@ def main() -> None:
     vae = VAEReconstruction(load_vae(ctx.trained("train_vae")))
     generators = {name: family(name).build_generator(ctx, GenerateOptions()) for name in args.models}
     for group, index in groups.items():
-        x, lengths = padded([motions[k] for k in index])
+        lengths = np.array([len(motions[k]) for k in index])
+        x = pad_motions([motions[k] for k in index], lengths)
         rows = {"real": ctx.store.to_joints(x, lengths),
                 "VAE": ctx.store.to_joints(vae.reconstruct(x, lengths), lengths)}
-        captions = [matched[k] or items[k].captions[0] for k in index]
+        text = ctx.store.encode_prompts([matched[k] or items[k].captions[0] for k in index])
         for name, generator in generators.items():
-            rows[name] = ctx.store.to_joints(generator.sample(ctx.store.encode_prompts(captions), lengths, 0), lengths)
+            rows[name] = ctx.store.to_joints(generator.sample(text, lengths, 0), lengths)
         for row, joints in rows.items():
             print(json.dumps({"words": args.words, "group": group, "motions": len(index), "row": row,
                               **{key: round(value, 3) for key, value in group_measures(joints, skeleton).items()}}),

@@ -1,4 +1,4 @@
-"""benchmarks/skating_by_caption.py: caption selection, padding and the group measures, on known answers."""
+"""benchmarks/skating_by_caption.py: caption selection and the group measures, on known answers."""
 
 import numpy as np
 import pytest
@@ -15,13 +15,6 @@ def test_first_match_needs_every_word_in_one_caption() -> None:
     assert bench.first_match(captions, ["walk", "forward"]) == "a man Walks forward then stops"
     assert bench.first_match(captions, ["walk"]) == "a man Walks forward then stops"
     assert bench.first_match(captions, ["walk", "back"]) is None
-
-
-def test_padding_keeps_each_motion_and_its_length() -> None:
-    a, b = np.ones((3, 2), np.float32), np.full((5, 2), 2.0, np.float32)
-    x, lengths = bench.padded([a, b])
-    assert lengths.tolist() == [3, 5] and x.shape == (2, 5, 2)
-    assert np.array_equal(x[0, :3], a) and not x[0, 3:].any() and np.array_equal(x[1], b)
 
 
 def _gliding(speed: float, frames: int = 41) -> np.ndarray:
