@@ -35,15 +35,23 @@ def _metres(joints: np.ndarray, skeleton: Skeleton) -> np.ndarray:
     return joints * skeleton.unit
 
 
+def toe_tracks(joints: np.ndarray, skeleton: Skeleton) -> tuple[np.ndarray, np.ndarray]:
+    """Both toes' heights (T, 2) in metres and horizontal speeds over each frame pair (T-1, 2) in m/s."""
+    toes = _metres(joints, skeleton)[:, [skeleton.feet_left[1], skeleton.feet_right[1]]]  # (T, 2, 3)
+    return toes[..., 1], np.linalg.norm(np.diff(toes[..., [0, 2]], axis=0), axis=-1) * skeleton.fps
+
+
+def skating_toes(joints: np.ndarray, skeleton: Skeleton) -> np.ndarray:
+    """Boolean (T-1, 2) mask: in frame pair (t, t+1), the left / right toe is low and slides."""
+    height, speed = toe_tracks(joints, skeleton)
+    smooth = uniform_filter1d(speed, size=5, axis=0, mode="constant")
+    low = height < SKATE_HEIGHT_M
+    return low[:-1] & low[1:] & (speed > SKATE_SPEED_MPS) & (smooth > SKATE_SPEED_MPS)
+
+
 def skating_frames(joints: np.ndarray, skeleton: Skeleton) -> np.ndarray:
     """Boolean (T-1,) mask of frame pairs (t, t+1) in which a planted toe slides."""
-    pos = _metres(joints, skeleton)
-    toes = pos[:, [skeleton.feet_left[1], skeleton.feet_right[1]]]  # (T, 2, 3)
-    speed = np.linalg.norm(np.diff(toes[..., [0, 2]], axis=0), axis=-1) * skeleton.fps  # (T-1, 2)
-    smooth = uniform_filter1d(speed, size=5, axis=0, mode="constant")
-    low = toes[..., 1] < SKATE_HEIGHT_M  # (T, 2)
-    contact = low[:-1] & low[1:]
-    return np.any(contact & (speed > SKATE_SPEED_MPS) & (smooth > SKATE_SPEED_MPS), axis=1)
+    return np.any(skating_toes(joints, skeleton), axis=1)
 
 
 def foot_skating_ratio(joints: np.ndarray, skeleton: Skeleton) -> float:
