@@ -118,6 +118,7 @@ Choices where the paper (or its code) is ambiguous or where we depart from it, e
 
 from __future__ import annotations
 
+import math
 from collections.abc import Iterator, Mapping, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass
@@ -130,8 +131,8 @@ from torch.nn import functional as F
 from torch.nn.attention import SDPBackend, sdpa_kernel
 
 from data.features import feature_groups, recover_from_ric
+from data.skeleton import SKELETONS
 from models.diffusion import cfg_combine, condition_dropout, sample_timesteps
-from models.foot_contact import foot_contact_loss, masked_mse, skeleton_feet
 from models.transformer import PositionalEncoding, TransformerLayer, eval_mode, lengths_to_mask, timestep_embedding
 
 Condition = Literal["text", "action"]
@@ -734,6 +735,22 @@ def _stat(x: Tensor | np.ndarray | Sequence[float], like: Tensor) -> Tensor:
     return torch.as_tensor(np.asarray(x) if not isinstance(x, Tensor) else x).to(like.device, like.dtype)
 
 
+def masked_mse(pred: Tensor, target: Tensor, valid: Tensor) -> Tensor:
+    """Squared error over valid frames: per sample ``sum_{valid n, all elements} (pred - target)^2 /
+    (valid frames * elements per frame)``, then the mean over the batch. pred/target (B, N, ...), valid (B, N)."""
+    per_frame = (pred - target).square().flatten(2).sum(-1)
+    elements = per_frame.new_tensor(float(math.prod(pred.shape[2:])))
+    count = valid.sum(1).to(per_frame.dtype).clamp(min=1.0) * elements
+    return (torch.where(valid, per_frame, 0.0).sum(1) / count).mean()
+
+
+def _feet_of(joints_num: int) -> tuple[int, ...]:
+    for skeleton in SKELETONS.values():
+        if skeleton.joints_num == joints_num:
+            return skeleton.feet
+    raise ValueError(f"no known skeleton with {joints_num} joints: pass feet explicitly")
+
+
 def geometric_losses(
     pred: Tensor,
     target: Tensor,
@@ -764,7 +781,7 @@ def geometric_losses(
     ``geo`` (the bracket) and ``total = weight * geo``.
     """
     groups = feature_groups(joints_num)
-    feet = tuple(skeleton_feet(joints_num) if feet is None else feet)
+    feet = tuple(_feet_of(joints_num) if feet is None else feet)
     valid = _valid_mask(lengths, pred.shape[1], pred.device)
     pairs = valid[:, 1:] & valid[:, :-1]
     mean_t, std_t = _stat(mean, pred), _stat(std, pred)
@@ -773,11 +790,13 @@ def geometric_losses(
     j = recover_from_ric(target[..., :used] * std_t[:used] + mean_t[:used], joints_num)
     v_hat, v = j_hat[:, 1:] - j_hat[:, :-1], j[:, 1:] - j[:, :-1]
     contacts = target[..., groups["contacts"]] * std_t[groups["contacts"]] + mean_t[groups["contacts"]]
+    on = (contacts[:, :-1] > 0.5).to(pred.dtype)[..., None]  # (B, N-1, 4, 1)
+    foot_vel = v_hat[:, :, list(feet)] * on
     terms = {
         "recon": masked_mse(pred, target, valid),
         "pos": masked_mse(j_hat, j, valid),
         "vel": masked_mse(v_hat, v, pairs),
-        "foot": foot_contact_loss(j_hat, contacts, valid, feet),
+        "foot": masked_mse(foot_vel, torch.zeros_like(foot_vel), pairs),
     }
     geo = terms["recon"] + lam * (terms["pos"] + terms["vel"]) + (lam if foot_lam is None else foot_lam) * terms["foot"]
     return {**terms, "geo": geo, "total": weight * geo}

@@ -43,12 +43,6 @@ term's root height still does.
 beta 1 the joint term is a squared error for every error a pose has, and its gradient fades as the
 error shrinks; a beta of a few centimetres makes it an L1 error beyond that, which keeps pulling on a
 body that faces the wrong way (docs/findings.md, 2026-12-02 (night)).
-
-``foot_weight`` (ours; MLD: 0) adds ``w_foot L_foot``, MDM's foot contact loss
-(:mod:`models.foot_contact`): the decoded global velocity of a foot the real motion has planted is
-pulled to zero. Neither joint term sees it: the root-aligned one removes the root's motion, which is
-most of a planted foot's slide, and the global one weighs a slide of a centimetre per frame as one
-centimetre of position error.
 """
 
 from __future__ import annotations
@@ -63,7 +57,6 @@ from torch import Tensor, nn
 from torch.nn import functional as F
 
 from data.features import feature_groups, recover_from_ric
-from models.foot_contact import foot_contact_loss, skeleton_feet
 from models.transformer import Activation, PositionalEncoding, PositionalEncodingKind, SkipTransformer, lengths_to_mask
 
 DecoderArch = Literal["cross_attention", "self_attention"]
@@ -276,30 +269,23 @@ def reconstruction_losses(
     joint_space: JointSpace = "global",
     joint_beta: float = 1.0,
 ) -> dict[str, Tensor]:
-    """Feature, joint and foot-contact reconstruction terms on normalised features (B, T, D), masked to
-    valid frames.
+    """Feature and joint reconstruction terms on normalised features (B, T, D), masked to valid frames.
 
     ``feature = SmoothL1(x_hat, x)``; ``joint = SmoothL1(J(x_hat), J(x))`` with
     ``J(x) = recover_from_ric(x * std + mean, joints_num)`` (B, T, J, 3), global positions in metres,
     minus each frame's root joint when ``joint_space="root"``; SmoothL1 beta 1 on the features and
-    ``joint_beta`` (metres) on the joints (see the module docstring). ``foot``: MDM's foot contact
-    loss (:func:`models.foot_contact.foot_contact_loss`) on the global J(x_hat), planted where the
-    target's contact labels say so.
+    ``joint_beta`` (metres) on the joints (see the module docstring).
     """
     if joint_space not in ("global", "root"):
         raise ValueError(f"joint_space must be 'global' or 'root', got {joint_space!r}")
     valid = lengths_to_mask(torch.as_tensor(lengths, device=recon.device), recon.shape[1])
-    groups = feature_groups(joints_num)
-    used = groups["ric"].stop  # recover_from_ric reads the root and RIC groups only
-    mean_t, std_t = _stat(mean, recon), _stat(std, recon)
-    j_hat = recover_from_ric(recon[..., :used] * std_t[:used] + mean_t[:used], joints_num)
-    j = recover_from_ric(target[..., :used] * std_t[:used] + mean_t[:used], joints_num)
-    contacts = target[..., groups["contacts"]] * std_t[groups["contacts"]] + mean_t[groups["contacts"]]
-    foot = foot_contact_loss(j_hat, contacts, valid, skeleton_feet(joints_num))
+    used = feature_groups(joints_num)["ric"].stop  # recover_from_ric reads the root and RIC groups only
+    mean_t, std_t = _stat(mean, recon)[:used], _stat(std, recon)[:used]
+    j_hat = recover_from_ric(recon[..., :used] * std_t + mean_t, joints_num)
+    j = recover_from_ric(target[..., :used] * std_t + mean_t, joints_num)
     if joint_space == "root":
         j_hat, j = j_hat - j_hat[..., :1, :], j - j[..., :1, :]
-    return {"feature": masked_smooth_l1(recon, target, valid), "joint": masked_smooth_l1(j_hat, j, valid, joint_beta),
-            "foot": foot}
+    return {"feature": masked_smooth_l1(recon, target, valid), "joint": masked_smooth_l1(j_hat, j, valid, joint_beta)}
 
 
 def vae_loss(
@@ -315,19 +301,16 @@ def vae_loss(
     generator: torch.Generator | None = None,
     joint_space: JointSpace = "global",
     joint_beta: float = 1.0,
-    foot_weight: float = 0.0,
 ) -> dict[str, Tensor]:
-    """MLD's VAE objective on a batch of normalised features (B, T, D) with lengths (B,), plus MDM's
-    foot contact term (ours; MLD: ``foot_weight`` 0).
+    """MLD's VAE objective on a batch of normalised features (B, T, D) with lengths (B,).
 
-    Returns scalars ``feature``, ``joint``, ``foot``, ``kl`` (unweighted) and
-    ``total = feature_weight * feature + joint_weight * joint + foot_weight * foot + kl_weight * kl``.
+    Returns scalars ``feature``, ``joint``, ``kl`` (unweighted) and
+    ``total = feature_weight * feature + joint_weight * joint + kl_weight * kl``.
     ``mean``/``std`` (D,) are the dataset statistics the features were normalised with;
     ``joint_space`` and ``joint_beta`` are those of :func:`reconstruction_losses`.
     """
     recon, dist = model(features, lengths, generator)
     terms = reconstruction_losses(recon, features, lengths, mean, std, joints_num, joint_space, joint_beta)
     kl = dist.kl()
-    total = (feature_weight * terms["feature"] + joint_weight * terms["joint"] + foot_weight * terms["foot"]
-             + kl_weight * kl)
+    total = feature_weight * terms["feature"] + joint_weight * terms["joint"] + kl_weight * kl
     return {**terms, "kl": kl, "total": total}
