@@ -39,12 +39,6 @@ the pose (measurements: docs/findings.md, "The root-aligned joint loss"). What i
 whole body's rise in a jump (HumanML3D stores every joint's height above the floor); the feature
 term's root height still does.
 
-``path_weight`` (ours; 0 in MLD, whose global joint term already holds the path) adds
-``w_p SmoothL1(FK(x_hat)_root, FK(x)_root)``, the root joint's *global* position. With the
-root-aligned joint term, the root-velocity features see each frame's error but not the drift their
-sum builds up over a clip, and the ControlNet's pelvis comes no closer to a path than the decoder's
-round trip does (docs/findings.md, "the VAE's global path term").
-
 ``joint_beta`` is the SmoothL1 beta of the joint term, in metres (MLD: 1, as the feature term's). With
 beta 1 the joint term is a squared error for every error a pose has, and its gradient fades as the
 error shrinks; a beta of a few centimetres makes it an L1 error beyond that, which keeps pulling on a
@@ -275,13 +269,12 @@ def reconstruction_losses(
     joint_space: JointSpace = "global",
     joint_beta: float = 1.0,
 ) -> dict[str, Tensor]:
-    """Feature, joint and path reconstruction terms on normalised features (B, T, D), masked to valid frames.
+    """Feature and joint reconstruction terms on normalised features (B, T, D), masked to valid frames.
 
     ``feature = SmoothL1(x_hat, x)``; ``joint = SmoothL1(J(x_hat), J(x))`` with
     ``J(x) = recover_from_ric(x * std + mean, joints_num)`` (B, T, J, 3), global positions in metres,
-    minus each frame's root joint when ``joint_space="root"``; ``path = SmoothL1(J(x_hat)_0, J(x)_0)``,
-    the root joint's global position whatever ``joint_space`` is. SmoothL1 beta 1 on the features and
-    ``joint_beta`` (metres) on the joints and the path (see the module docstring).
+    minus each frame's root joint when ``joint_space="root"``; SmoothL1 beta 1 on the features and
+    ``joint_beta`` (metres) on the joints (see the module docstring).
     """
     if joint_space not in ("global", "root"):
         raise ValueError(f"joint_space must be 'global' or 'root', got {joint_space!r}")
@@ -290,11 +283,9 @@ def reconstruction_losses(
     mean_t, std_t = _stat(mean, recon)[:used], _stat(std, recon)[:used]
     j_hat = recover_from_ric(recon[..., :used] * std_t + mean_t, joints_num)
     j = recover_from_ric(target[..., :used] * std_t + mean_t, joints_num)
-    path = masked_smooth_l1(j_hat[..., 0, :], j[..., 0, :], valid, joint_beta)
     if joint_space == "root":
         j_hat, j = j_hat - j_hat[..., :1, :], j - j[..., :1, :]
-    return {"feature": masked_smooth_l1(recon, target, valid), "joint": masked_smooth_l1(j_hat, j, valid, joint_beta),
-            "path": path}
+    return {"feature": masked_smooth_l1(recon, target, valid), "joint": masked_smooth_l1(j_hat, j, valid, joint_beta)}
 
 
 def vae_loss(
@@ -310,18 +301,16 @@ def vae_loss(
     generator: torch.Generator | None = None,
     joint_space: JointSpace = "global",
     joint_beta: float = 1.0,
-    path_weight: float = 0.0,
 ) -> dict[str, Tensor]:
     """MLD's VAE objective on a batch of normalised features (B, T, D) with lengths (B,).
 
-    Returns scalars ``feature``, ``joint``, ``path``, ``kl`` (unweighted) and
-    ``total = feature_weight * feature + joint_weight * joint + path_weight * path + kl_weight * kl``.
+    Returns scalars ``feature``, ``joint``, ``kl`` (unweighted) and
+    ``total = feature_weight * feature + joint_weight * joint + kl_weight * kl``.
     ``mean``/``std`` (D,) are the dataset statistics the features were normalised with;
     ``joint_space`` and ``joint_beta`` are those of :func:`reconstruction_losses`.
     """
     recon, dist = model(features, lengths, generator)
     terms = reconstruction_losses(recon, features, lengths, mean, std, joints_num, joint_space, joint_beta)
     kl = dist.kl()
-    total = (feature_weight * terms["feature"] + joint_weight * terms["joint"] + path_weight * terms["path"]
-             + kl_weight * kl)
+    total = feature_weight * terms["feature"] + joint_weight * terms["joint"] + kl_weight * kl
     return {**terms, "kl": kl, "total": total}
