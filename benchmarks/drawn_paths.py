@@ -53,6 +53,11 @@ CASES = (
 )
 
 
+def horizontal_speed(points: np.ndarray, fps: float) -> float:
+    """Mean horizontal speed (m/s) of a track of points (T, 3)."""
+    return float(np.linalg.norm(np.diff(points[:, [0, 2]], axis=0), axis=1).mean() * fps)
+
+
 def path_measures(pelvis: np.ndarray, path: np.ndarray, fps: float) -> dict[str, float]:
     """A generated pelvis (T, 3) against a path (T, 3), in metres and m/s: ``error`` the mean distance
     frame by frame; ``off_path`` the mean horizontal distance to the path's nearest point (its frames
@@ -63,7 +68,7 @@ def path_measures(pelvis: np.ndarray, path: np.ndarray, fps: float) -> dict[str,
         "error": float(np.linalg.norm(pelvis - path, axis=-1).mean()),
         "off_path": float(np.linalg.norm(ground[:, None] - target[None], axis=-1).min(1).mean()),
         "end": float(np.linalg.norm(ground[-1] - target[-1])),
-        "speed": float(np.linalg.norm(np.diff(ground, axis=0), axis=1).mean() * fps),
+        "speed": horizontal_speed(pelvis, fps),
     }
 
 
@@ -97,7 +102,7 @@ def main() -> None:
         every += measures
         print(json.dumps({
             "caption": caption, "shape": shape, "size": size,
-            "path_speed": round(path_measures(path, path, fps)["speed"], 3),
+            "path_speed": round(horizontal_speed(path, fps), 3),
             "error_m": round(mean["error"], 3), "error_sd": round(float(np.std([m["error"] for m in measures])), 3),
             "off_path_m": round(mean["off_path"], 3), "end_m": round(mean["end"], 3), "speed": round(mean["speed"], 3),
             "skating": round(float(np.mean([foot_skating_ratio(j, skeleton) for j in joints])), 3),
