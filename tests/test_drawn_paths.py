@@ -5,7 +5,8 @@ import pytest
 
 from tests.bench_module import load_benchmark
 
-path_measures = load_benchmark("drawn_paths").path_measures
+drawn_paths = load_benchmark("drawn_paths")
+path_measures, horizontal_speed = drawn_paths.path_measures, drawn_paths.horizontal_speed
 
 
 def _line(length: float, frames: int = 41, height: float = 0.9) -> np.ndarray:
@@ -43,3 +44,11 @@ def test_a_parallel_offset_is_off_the_path_by_the_offset() -> None:
     line = _line(2.0)
     beside = line + np.array([0.3, 0.0, 0.0])
     assert path_measures(beside, line, 20.0) == pytest.approx({"error": 0.3, "off_path": 0.3, "end": 0.3, "speed": 1.0})
+
+
+def test_horizontal_speed_ignores_height() -> None:
+    """2 m along x and z (2.83 m) in 40 frames at 20 fps, rising 1 m on the way: 2.83 / 2 s."""
+    track = np.zeros((41, 3))
+    track[:, 0] = track[:, 2] = np.linspace(0.0, 2.0, 41)
+    track[:, 1] = np.linspace(0.0, 1.0, 41)
+    assert horizontal_speed(track, 20.0) == pytest.approx(np.sqrt(8.0) / 2.0)
