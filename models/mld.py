@@ -280,7 +280,7 @@ def drop_text(
 
 
 def mld_loss(
-    denoiser: MLDDenoiser,
+    denoiser: MLDDenoiser | nn.Module,
     schedule: NoiseSchedule,
     z0: Tensor,
     text_emb: Tensor,
@@ -297,14 +297,17 @@ def mld_loss(
     and, for a ``word_tokens`` denoiser, its word tokens (B, N, H) with text_mask (B, N)) dropped to
     the null caption w.p. ``p_uncond``; ``mse = mean ||target - net(z_t, t, c)||^2`` with target = eps
     for epsilon prediction. All randomness comes from ``generator``. Returns ``{"mse", "total"}`` (equal).
+    ``denoiser`` may be wrapped in DistributedDataParallel (a multi-worker run): the forward goes through
+    the wrapper, so that gradients are synchronised; the null caption and config come from the module.
     """
+    inner: MLDDenoiser = getattr(denoiser, "module", denoiser)
     dev = _gen_device(generator, z0.device)
     t = sample_timesteps(z0.shape[0], schedule.num_steps, generator, dev).to(z0.device)
     noise = torch.randn(z0.shape, generator=generator, device=dev, dtype=z0.dtype).to(z0.device)
-    text, mask = drop_text(text_emb, p_uncond, generator, denoiser.null_text, text_mask)
+    text, mask = drop_text(text_emb, p_uncond, generator, inner.null_text, text_mask)
     pred = denoiser(schedule.q_sample(z0, t, noise), t, text, text_tokens=text_tokens, text_mask=mask,
                     time_cond=time_cond)
-    target = schedule.prediction_target(z0, noise, t, denoiser.config.prediction_type)
+    target = schedule.prediction_target(z0, noise, t, inner.config.prediction_type)
     mse = F.mse_loss(pred, target)
     return {"mse": mse, "total": mse}
 

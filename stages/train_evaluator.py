@@ -67,9 +67,14 @@ def _new_evaluator(config: dict) -> T2MEvaluator:
 
 
 def build_movement(config: dict) -> Components:
+    """The movement autoencoder: only the movement encoder and the decoder train (and require grad, so that
+    DistributedDataParallel does not wait for gradients of the evaluator's unused parts)."""
     model = MovementAutoencoder(_new_evaluator(config))
-    opt = torch.optim.Adam(list(model.evaluator.movement_encoder.parameters()) + list(model.decoder.parameters()),
-                           lr=config["lr"])
+    model.requires_grad_(False)
+    trained = [model.evaluator.movement_encoder, model.decoder]
+    for module in trained:
+        module.requires_grad_(True)
+    opt = torch.optim.Adam([p for module in trained for p in module.parameters()], lr=config["lr"])
     return Components(models={"movement": model}, optimizers={"adam": opt})
 
 
