@@ -46,15 +46,18 @@ def scratch_folder(folder: Path, artifacts: Path, fresh: set[str]) -> Path:
     return folder
 
 
-def first_error(log: str) -> str:
-    """The first line that names an exception, or ''."""
+def stage_note(stage: str, log: str) -> str:
+    """The first line of ``log`` that names an exception, else the stage's note that it trains on fewer
+    workers than asked (EMDM's stages), else ''."""
     match = re.search(r"^.*\b\w*(Error|Exception): .*$", log, re.MULTILINE)
-    return match.group(0).strip()[:160] if match else ""
+    if match:
+        return match.group(0).strip()[:160]
+    capped = re.search(rf"^{stage}: trains on .*$", log, re.MULTILINE)
+    return capped.group(0) if capped else ""
 
 
 def run_stage(stage: str, folder: Path, workers: int, steps: int, overrides: list[str]) -> tuple[int, float, str]:
-    """Runs the stage in ``folder``; returns (exit status, wall seconds, the first error line or the
-    stage's note that it trains on fewer workers)."""
+    """Runs the stage in ``folder``; returns (exit status, wall seconds, :func:`stage_note`)."""
     cmd = [sys.executable, "-m", f"stages.{stage}", f"ray.num_workers={workers}", "ray.cpus_per_worker=1",
            f"paths.artifacts={folder}", f"paths.ray_storage={folder / 'ray'}",
            *[f"{loop}.max_steps={steps}" for loop in STAGES[stage][1]], *overrides]
@@ -62,8 +65,7 @@ def run_stage(stage: str, folder: Path, workers: int, steps: int, overrides: lis
     done = subprocess.run(cmd, capture_output=True, text=True, cwd=Path(__file__).resolve().parents[1])
     log = done.stdout + done.stderr
     (folder / f"{stage}.log").write_text(log)
-    capped = re.search(rf"^{stage}: trains on .*$", log, re.MULTILINE)  # EMDM's stages: one worker
-    return done.returncode, time.perf_counter() - start, first_error(log) or (capped.group(0) if capped else "")
+    return done.returncode, time.perf_counter() - start, stage_note(stage, log)
 
 
 def main(argv: list[str] | None = None) -> int:
