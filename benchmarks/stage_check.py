@@ -11,7 +11,7 @@ OVERRIDE ...``. Without ``--chain`` each stage gets its own scratch folder, in w
 its own outputs is a link to ``--artifacts``. With ``--chain`` the stages share one scratch folder, run
 in pipeline order, and each reads the outputs the stages before it wrote there (needed when the
 overrides change the models' shapes). Prints one line per stage (exit status, wall seconds, the first
-error line, or the stage's note that it trains on fewer workers) and exits 1 if any stage failed.
+error line) and exits 1 if any stage failed.
 """
 import argparse
 import re
@@ -46,18 +46,14 @@ def scratch_folder(folder: Path, artifacts: Path, fresh: set[str]) -> Path:
     return folder
 
 
-def stage_note(stage: str, log: str) -> str:
-    """The first line of ``log`` that names an exception, else the stage's note that it trains on fewer
-    workers than asked (EMDM's stages), else ''."""
+def first_error(log: str) -> str:
+    """The first line of ``log`` that names an exception, or ''."""
     match = re.search(r"^.*\b\w*(Error|Exception): .*$", log, re.MULTILINE)
-    if match:
-        return match.group(0).strip()[:160]
-    capped = re.search(rf"^{stage}: trains on .*$", log, re.MULTILINE)
-    return capped.group(0) if capped else ""
+    return match.group(0).strip()[:160] if match else ""
 
 
 def run_stage(stage: str, folder: Path, workers: int, steps: int, overrides: list[str]) -> tuple[int, float, str]:
-    """Runs the stage in ``folder``; returns (exit status, wall seconds, :func:`stage_note`)."""
+    """Runs the stage in ``folder``; returns (exit status, wall seconds, :func:`first_error` of its log)."""
     cmd = [sys.executable, "-m", f"stages.{stage}", f"ray.num_workers={workers}", "ray.cpus_per_worker=1",
            f"paths.artifacts={folder}", f"paths.ray_storage={folder / 'ray'}",
            *[f"{loop}.max_steps={steps}" for loop in STAGES[stage][1]], *overrides]
@@ -65,7 +61,7 @@ def run_stage(stage: str, folder: Path, workers: int, steps: int, overrides: lis
     done = subprocess.run(cmd, capture_output=True, text=True, cwd=Path(__file__).resolve().parents[1])
     log = done.stdout + done.stderr
     (folder / f"{stage}.log").write_text(log)
-    return done.returncode, time.perf_counter() - start, stage_note(stage, log)
+    return done.returncode, time.perf_counter() - start, first_error(log)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -88,9 +84,9 @@ def main(argv: list[str] | None = None) -> int:
     failed = 0
     for stage in stages:
         folder = shared if args.chain else scratch_folder(args.scratch / stage, args.artifacts, set(STAGES[stage][0]))
-        code, seconds, note = run_stage(stage, folder, args.workers, args.steps, args.overrides)
+        code, seconds, error = run_stage(stage, folder, args.workers, args.steps, args.overrides)
         failed += code != 0
-        print(f"{stage:20s} rc={code} {seconds:6.1f} s {note}".rstrip(), flush=True)
+        print(f"{stage:20s} rc={code} {seconds:6.1f} s {error}".rstrip(), flush=True)
         if code != 0:
             print(f"{'':20s} log: {folder / f'{stage}.log'}", flush=True)
     return 1 if failed else 0

@@ -108,8 +108,6 @@ def class_captions(items: Sequence[StoredItem]) -> tuple[torch.Tensor, torch.Ten
 
 def step(batch: dict, ctx: StepContext) -> dict[str, torch.Tensor]:
     """One D update (with lazy R1 when ``ctx.step`` is due), then one G update with D frozen."""
-    if ctx.world_size > 1:
-        raise NotImplementedError("train_emdm runs on one worker (ray.num_workers: 1): its D step is not DDP-safe")
     generator, discriminator = ctx.models["generator"], ctx.models["discriminator"]
     schedule = ctx.frozen["schedule"]
     x0, lengths = batch["motion"], batch["length"]
@@ -259,8 +257,8 @@ def training_stage(section: str, module: str) -> TrainingStage:
     """The EMDM training stage named ``section`` reading its params section of the same name."""
     return TrainingStage(
         name=section, module=module, config=partial(stage_config, section=section),
-        spec=TrainSpec(build=build, dataset=dataset, step=step, collate=collate_trimmed),
-        inputs=("features_dir", "init_dir"), params=(section, "features.out", "paths", "ray"), max_workers=1,
+        spec=TrainSpec(build=build, dataset=dataset, step=step, collate=collate_trimmed, ddp=False),
+        inputs=("features_dir", "init_dir"), params=(section, "features.out", "paths", "ray"),
         check=lambda params: check_section(params[section], section),
         skip=lambda params: missing_actions(params) if params[section]["condition"] == "action" else None,
     )

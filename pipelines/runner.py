@@ -14,7 +14,8 @@ A stage describes *what* to train; the runner owns *how*::
   optimiser step); the runner then steps the LR schedules and EMAs and logs the losses.
 
 The per-worker loop (:func:`train_loop`) is the same code under Ray Train and in-process:
-per-rank seeding, DDP (``prepare_model``, only when world_size > 1), a
+per-rank seeding, DDP (``prepare_model``, only when world_size > 1; a spec with ``ddp=False``
+keeps its models unwrapped and averages gradients in ``ctx.update`` instead), a
 ``DistributedSampler`` whose order is a pure function of (seed, epoch), a per-epoch seeded
 ``torch.Generator`` for the DataLoader, cosine-with-warm-up LR, EMA, and a checkpoint
 every ``checkpoint_every`` steps holding everything needed to continue bit-exactly
@@ -101,12 +102,19 @@ class TrainingError(ValueError):
 
 @dataclass(frozen=True)
 class TrainSpec:
-    """A stage's training recipe. Functions must be importable (module level) for Ray."""
+    """A stage's training recipe. Functions must be importable (module level) for Ray.
+
+    ``ddp``: with several workers, wrap the trained models in DistributedDataParallel (the default).
+    ``False`` leaves them unwrapped for steps DDP cannot run (EMDM's R1 backpropagates twice through
+    its discriminator): every rank starts from rank 0's weights and :meth:`StepContext.update`
+    averages each optimiser's gradients over the ranks before clipping, which is what DDP computes.
+    """
 
     build: Callable[[dict], Components]
     dataset: Callable[[dict], Dataset]
     step: StepFn
     collate: Callable[[list], Any] | None = None
+    ddp: bool = True
 
 
 @dataclass
@@ -125,6 +133,7 @@ class StepContext:
     step: int = 0
     epoch: int = 0
     extra_metrics: dict[str, torch.Tensor] = field(default_factory=dict)
+    average_grads: bool = False  # several ranks without DDP: update() averages the gradients
 
     def unwrap(self, name: str) -> nn.Module:
         """``models[name]`` without its DDP wrapper."""
@@ -140,8 +149,10 @@ class StepContext:
         opt = self.optimizers[name]
         opt.zero_grad(set_to_none=True)
         loss.backward()
+        params = [p for g in opt.param_groups for p in g["params"] if p.grad is not None]
+        if self.average_grads:
+            average_over_ranks([p.grad for p in params], self.world_size)
         if self.grad_clip > 0:
-            params = [p for g in opt.param_groups for p in g["params"] if p.grad is not None]
             norm = torch.nn.utils.clip_grad_norm_(params, self.grad_clip)
             self.extra_metrics[f"grad_norm/{name}"] = norm.detach()
         opt.step()
@@ -433,6 +444,31 @@ def _unwrap(model: nn.Module) -> nn.Module:
     return getattr(model, "module", model)
 
 
+def average_over_ranks(tensors: Sequence[torch.Tensor], world_size: int) -> None:
+    """Replace each tensor by its mean over the process group's ``world_size`` ranks (one all-reduce of
+    a flat buffer). Every rank must pass tensors of the same shapes in the same order."""
+    import torch.distributed as dist
+
+    if not tensors:
+        return
+    flat = torch.cat([t.reshape(-1) for t in tensors])
+    dist.all_reduce(flat)
+    flat /= world_size
+    offset = 0
+    for t in tensors:
+        t.copy_(flat[offset : offset + t.numel()].view_as(t))
+        offset += t.numel()
+
+
+def broadcast_from_rank0(model: nn.Module) -> None:
+    """Copy rank 0's parameters and buffers to every rank, as DDP does when it wraps a model."""
+    import torch.distributed as dist
+
+    with torch.no_grad():
+        for tensor in [*model.parameters(), *model.buffers()]:
+            dist.broadcast(tensor, src=0)
+
+
 def to_device(batch: Any, device: torch.device) -> Any:
     """Move every tensor in a (nested) batch to ``device``."""
     if isinstance(batch, torch.Tensor):
@@ -647,9 +683,13 @@ def train_loop(session: Session, spec: TrainSpec, config: dict, info: RunInfo) -
     _restore(run, session, s)
     run.attempts.append(run.pos.step)
     run.device = str(session.device)
-    run.models = {name: session.wrap(m) for name, m in run.raw.items()}
+    average_grads = not spec.ddp and session.world_size > 1
+    if average_grads:
+        for model in [*run.raw.values(), *(ema.module for ema in run.emas.values())]:
+            broadcast_from_rank0(model)
+    run.models = {name: session.wrap(m) if spec.ddp else m for name, m in run.raw.items()}
     ctx = StepContext(config, run.models, run.optimizers, run.emas, run.frozen, session.device,
-                      session.rank, session.world_size, s.grad_clip)
+                      session.rank, session.world_size, s.grad_clip, average_grads=average_grads)
     progress, window = tracking.Progress(info.stage, run.pos.step, s.max_steps), _Window()
     guard = FiniteGuard(info.run_name, session.device)
     last_checkpoint = -1

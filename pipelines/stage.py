@@ -56,8 +56,6 @@ class TrainingStage:
         inputs: loop-config keys holding input folders whose contents are part of the run's identity
             (an optional input's key may be missing or None: then it is not read).
         loop_group: dotted params key of the runner settings (default ``<name>.loop``).
-        max_workers: the most Ray Train workers the stage can use (None: any); a larger
-            ``ray.num_workers`` runs it on this many, with a note on the console.
         check: validates the stage's own params section before any work starts (a ValueError
             naming the key); the ``loop`` group and the shared sections are checked anyway.
         skip: a reason not to train with these params (the data cannot feed the stage), or None.
@@ -70,7 +68,6 @@ class TrainingStage:
     params: tuple[str, ...]
     inputs: tuple[str, ...] = ()
     loop_group: str = ""
-    max_workers: int | None = None
     check: Callable[[dict[str, Any]], object] | None = None
     skip: Callable[[dict[str, Any]], str | None] | None = None
 
@@ -105,22 +102,12 @@ def loop_config(stage: TrainingStage, params: dict[str, Any]) -> dict[str, Any]:
     return asdict(settings) | own
 
 
-def ray_options(stage: TrainingStage, params: dict[str, Any]) -> dict[str, Any]:
-    """The ``ray`` params for ``stage``: ``num_workers`` capped at ``stage.max_workers`` (with a note)."""
-    ray = dict(param(params, "ray"))
-    workers = ray.get("num_workers")
-    if stage.max_workers is not None and isinstance(workers, int) and workers > stage.max_workers:
-        print(f"{stage.name}: trains on {stage.max_workers} worker(s), not ray.num_workers={workers}")
-        ray["num_workers"] = stage.max_workers
-    return ray
-
-
 def train(stage: TrainingStage, params: dict[str, Any], config: dict[str, Any] | None = None) -> RunResult:
     """Run ``stage`` (``config``: a ready loop config, else built from params) and write its outputs."""
     config = loop_config(stage, params) if config is None else config
     inputs = [config[key] for key in stage.inputs if config.get(key) is not None]
     digest = fingerprint(module_name(stage.module), inputs)
-    result = run_training(stage.name, stage.spec, config, ray_options(stage, params),
+    result = run_training(stage.name, stage.spec, config, dict(param(params, "ray")),
                           artifacts_dir(params) / stage.name, ray_storage(params), fingerprint=digest)
     print(f"{stage.name}: final loss {result.metrics.get('loss', float('nan')):.4f} after "
           f"{result.metrics.get('step', 0)} steps -> {result.out_dir}")

@@ -26,10 +26,10 @@ Conditions (``condition``): ``text``, the pooled caption embedding of the store'
 ``action``, the label of the store's labelled single-action motions (whole, up to ``crop_frames``),
 as an index into ``classes`` (the sorted training labels, saved in the model's config). The
 pipeline trains both: this module for ``train_emdm`` (text) and :mod:`stages.train_emdm_action` for
-the ``train_emdm_action`` section (action), with one recipe. The stage trains on one Ray Train
-worker whatever ``ray.num_workers`` says (a note is printed): the D step runs D twice and
-double-backpropagates for R1, which DDP's reducer does not allow, and :mod:`models.emdm` reads the
-networks' ``config``, which a DDP wrapper hides.
+the ``train_emdm_action`` section (action), with one recipe. With several Ray Train workers the
+networks are not wrapped in DDP (``TrainSpec.ddp=False``): the D step runs D twice and
+double-backpropagates for R1, which DDP's reducer does not allow. The runner averages each
+optimiser's gradients over the workers instead, which is what DDP computes.
 """
 
 from __future__ import annotations

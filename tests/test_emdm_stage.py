@@ -37,7 +37,7 @@ from pipelines.length_batches import batch_seed
 from pipelines.recogniser import action_classes, labelled_items
 from pipelines.registry import EvalContext, GenerateOptions
 from pipelines.runner import StepContext, run_training
-from pipelines.stage import loop_config, ray_options, train
+from pipelines.stage import loop_config, train
 from stages import train_emdm
 
 pytestmark = pytest.mark.usefixtures("one_thread")  # tiny networks (tests/conftest.py)
@@ -109,14 +109,6 @@ def test_bad_params_name_the_key(change: dict[str, Any], key: str, tmp_path: Pat
         loop_config(train_emdm.STAGE, params)
 
 
-def test_more_than_one_worker_runs_on_one(capsys: pytest.CaptureFixture[str]) -> None:
-    """A profile with 8 workers (paper) still trains EMDM, on one worker, and says so."""
-    params = {"ray": {"num_workers": 8, "cpus_per_worker": 4}}
-    assert ray_options(train_emdm.STAGE, params) == {"num_workers": 1, "cpus_per_worker": 4}
-    assert "train_emdm: trains on 1 worker(s), not ray.num_workers=8" in capsys.readouterr().out
-    assert ray_options(train_emdm.STAGE, {"ray": {"num_workers": 0}}) == {"num_workers": 0}
-
-
 def test_a_good_section_reaches_the_store(tmp_path: Path) -> None:
     params = {"train_emdm": emdm_section(), "features": {"out": str(tmp_path / "no_store")}, "ray": {}}
     with pytest.raises(FileNotFoundError, match="no feature store"):
@@ -167,9 +159,6 @@ def test_one_gan_step_updates_both_networks_and_r1_only_when_due() -> None:
     assert "r1" not in emdm_training.step(batch, ctx)
     ctx.step = 3
     assert "r1" in emdm_training.step(batch, ctx)
-    ctx.world_size = 2
-    with pytest.raises(NotImplementedError, match="one worker"):
-        emdm_training.step(batch, ctx)
 
 
 def test_action_condition_trains_on_labels_with_r_one() -> None:

@@ -15,6 +15,7 @@ import subprocess
 import sys
 import textwrap
 import time
+from dataclasses import replace
 from pathlib import Path
 from types import SimpleNamespace
 from typing import Any
@@ -465,3 +466,18 @@ def test_two_node_cluster_run(ray_cluster: Any, tmp_path: Path) -> None:
     assert result.metrics["step"] == 20 and (tmp_path / "out" / "model.pt").exists()
     latest = sorted(p for p in Path(result.run_path).glob("checkpoint_*") if p.is_dir())[-1]
     assert {STATE_FILE, rng_file(0), rng_file(1)} <= {p.name for p in latest.iterdir()}
+
+
+def test_without_ddp_two_workers_train_what_ddp_trains(ray_cluster: Any, tmp_path: Path) -> None:
+    """A spec with ``ddp=False`` (EMDM's: R1 backpropagates twice) keeps its models unwrapped, and
+    ``ctx.update`` averages the gradients over the workers: the same weights as DDP's, bit for bit
+    (with two ranks, (a + b) / 2 and a / 2 + b / 2 round alike), and not one worker's."""
+    cfg = {**BASE, "max_steps": 12}
+    two = {"num_workers": 2, "checkpoint_every": 12}
+    ddp = run_training(STAGE, SPEC, cfg, two, tmp_path / "ddp", str(tmp_path / "s_ddp"))
+    averaged = run_training(STAGE, replace(SPEC, ddp=False), cfg, two, tmp_path / "avg", str(tmp_path / "s_avg"))
+    assert_bit_identical(ddp.out_dir, averaged.out_dir)
+    one = run_training(STAGE, replace(SPEC, ddp=False), cfg, {**two, "num_workers": 1}, tmp_path / "one",
+                       str(tmp_path / "s_one"))
+    first_layer = "models.net.0.weight"
+    assert not torch.equal(weights(one.out_dir)[first_layer], weights(averaged.out_dir)[first_layer])

@@ -21,13 +21,10 @@ def test_scratch_folder_links_all_but_the_fresh_outputs(tmp_path: Path) -> None:
     assert (artifacts / "train_mld" / "model.pt").read_text() == "train_mld"  # the source is untouched
 
 
-def test_stage_note_gives_the_first_error_then_the_worker_note() -> None:
+def test_first_error_is_the_first_line_naming_an_exception() -> None:
     log = ("[train_mld] step 1/4\n"
            "(RayTrainWorker pid=7) AttributeError: 'DistributedDataParallel' object has no attribute 'null_text'\n"
            "ray.exceptions.RayTaskError: the worker failed\n")
-    assert stage_check.stage_note("train_mld", log) == (
+    assert stage_check.first_error(log) == (
         "(RayTrainWorker pid=7) AttributeError: 'DistributedDataParallel' object has no attribute 'null_text'")
-    capped = "train_emdm: trains on 1 worker(s), not ray.num_workers=2\n[train_emdm] step 4/4\n"
-    assert stage_check.stage_note("train_emdm", capped) == "train_emdm: trains on 1 worker(s), not ray.num_workers=2"
-    assert stage_check.stage_note("train_vae", capped) == ""
-    assert stage_check.stage_note("train_vae", "[train_vae] step 4/4 loss=0.1\n") == ""
+    assert stage_check.first_error("[train_vae] step 4/4 loss=0.1\ntrain_vae: final loss 0.1\n") == ""
