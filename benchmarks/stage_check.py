@@ -4,7 +4,7 @@
         [--scratch /tmp/motionforge_stage_check] [--stages STAGE ...] [OVERRIDE ...]
 
 Two uses: several Ray Train workers (DDP) as on a cluster (``--workers 2``, the default), and the
-papers' sizes (``--workers 1 --chain scale=paper``). Needs a finished pipeline's ``artifacts/`` for the
+papers' sizes (``--workers 0 --chain scale=paper``, in-process). Needs a finished pipeline's ``artifacts/`` for the
 stages' inputs; nothing under it changes. Each stage runs as ``python -m stages.<stage>
 ray.num_workers=<workers> ray.cpus_per_worker=1 paths.artifacts=<scratch> <section>.loop.max_steps=<steps>
 OVERRIDE ...``. Without ``--chain`` each stage gets its own scratch folder, in which every artifact but

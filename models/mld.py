@@ -280,7 +280,7 @@ def drop_text(
 
 
 def mld_loss(
-    denoiser: MLDDenoiser | nn.Module,
+    denoiser: MLDDenoiser,
     schedule: NoiseSchedule,
     z0: Tensor,
     text_emb: Tensor,
@@ -290,6 +290,7 @@ def mld_loss(
     text_tokens: Tensor | None = None,
     text_mask: Tensor | None = None,
     time_cond: Tensor | None = None,
+    net: nn.Module | None = None,
 ) -> dict[str, Tensor]:
     """MLD's diffusion loss on diffusion-space latents z0 (B, L, C) (i.e. ``z / latent_scale``).
 
@@ -297,17 +298,18 @@ def mld_loss(
     and, for a ``word_tokens`` denoiser, its word tokens (B, N, H) with text_mask (B, N)) dropped to
     the null caption w.p. ``p_uncond``; ``mse = mean ||target - net(z_t, t, c)||^2`` with target = eps
     for epsilon prediction. All randomness comes from ``generator``. Returns ``{"mse", "total"}`` (equal).
-    ``denoiser`` may be wrapped in DistributedDataParallel (a multi-worker run): the forward goes through
-    the wrapper, so that gradients are synchronised; the null caption and config come from the module.
+    ``net`` is the module called for the prediction, ``denoiser`` by default; a multi-worker run passes
+    the denoiser's DDP wrapper, so that gradients are synchronised (the null caption and the prediction
+    type are always read from ``denoiser``).
     """
-    inner: MLDDenoiser = getattr(denoiser, "module", denoiser)
+    net = denoiser if net is None else net
     dev = _gen_device(generator, z0.device)
     t = sample_timesteps(z0.shape[0], schedule.num_steps, generator, dev).to(z0.device)
     noise = torch.randn(z0.shape, generator=generator, device=dev, dtype=z0.dtype).to(z0.device)
-    text, mask = drop_text(text_emb, p_uncond, generator, inner.null_text, text_mask)
-    pred = denoiser(schedule.q_sample(z0, t, noise), t, text, text_tokens=text_tokens, text_mask=mask,
+    text, mask = drop_text(text_emb, p_uncond, generator, denoiser.null_text, text_mask)
+    pred = net(schedule.q_sample(z0, t, noise), t, text, text_tokens=text_tokens, text_mask=mask,
                     time_cond=time_cond)
-    target = schedule.prediction_target(z0, noise, t, inner.config.prediction_type)
+    target = schedule.prediction_target(z0, noise, t, denoiser.config.prediction_type)
     mse = F.mse_loss(pred, target)
     return {"mse": mse, "total": mse}
 

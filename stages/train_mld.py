@@ -39,9 +39,9 @@ def build(config: dict) -> Components:
 def step(batch: dict, ctx: StepContext) -> dict[str, torch.Tensor]:
     """z0 = (mu + sigma * eps) / s with a fresh eps (MLD samples the posterior), then MLD's eps loss."""
     z0 = LatentDistribution(batch["mu"], batch["logvar"]).sample() / ctx.config["model"]["latent_scale"]
-    losses = mld_loss(ctx.models["denoiser"], ctx.frozen["schedule"], z0, batch["text"],
+    losses = mld_loss(ctx.unwrap("denoiser"), ctx.frozen["schedule"], z0, batch["text"],
                       p_uncond=ctx.config["p_uncond"], text_tokens=batch.get("tokens"),
-                      text_mask=batch.get("token_mask"))
+                      text_mask=batch.get("token_mask"), net=ctx.models["denoiser"])
     ctx.update(losses["total"])
     return {"loss": losses["total"].detach()}
 

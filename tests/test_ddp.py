@@ -73,7 +73,8 @@ def _denoiser(**overrides: object) -> MLDDenoiser:
 def test_mld_loss_through_ddp_equals_the_plain_loss() -> None:
     net, schedule = _denoiser(), NoiseSchedule.from_name("scaled_linear", 1000)
     z0, text = torch.randn(4, 2, 8, generator=_gen(1)), torch.randn(4, 16, generator=_gen(2))
-    _check_under_ddp(net, lambda model: mld_loss(model, schedule, z0, text, p_uncond=0.5, generator=_gen(3))["total"])
+    _check_under_ddp(net, lambda model: mld_loss(net, schedule, z0, text, p_uncond=0.5, generator=_gen(3),
+                                                 net=model)["total"])
 
 
 @pytest.mark.usefixtures("process_group")
