@@ -21,17 +21,6 @@ Decoder (``decoder_arch``):
 - ``"self_attention"`` (MLD's ``all_encoder``): the L latent tokens and the T queries are concatenated,
   encoded with the positional encoding over all L + T positions, and the last T outputs are read.
 
-``query_band`` n > 0 (ours; MLD: 0) adds a *latent-modulated frequency band* to the decoder's frame
-queries: ``q_t = PE(t) + W_b (b(t) * m(z))`` with ``b(t) = [sin(w_k t), cos(w_k t)]_{k<n}``, the
-``w_k`` evenly spaced over the angular frequencies of ``band_periods`` (shortest, longest period
-in frames), ``m(z) = Linear(flatten(z))`` a per-motion weight for each sine and cosine, and ``W_b`` a
-``Linear(2n -> h)``. Why: the sinusoidal PE has only two or three channels with periods near a wave's
-7-11 frames, at fixed frequencies, so a swing whose frequency lies between them must be synthesised
-by the network; the decoder instead averaged it away. With the band, ``sum_k a_k sin(w_k t) + b_k
-cos(w_k t)`` is any swing in that band, at any phase, linear in the queries (docs/findings.md,
-2026-12-06 (morning)). ``m`` reads the whole latent, so the band is a property of the motion, and
-the transformer places it in time.
-
 Either way padded frames are set to 0 in the output, and valid frames never attend to padded ones,
 so a valid frame's output depends only on z and its own length, not on the padding.
 
@@ -83,9 +72,6 @@ class MotionVAEConfig:
     hidden_dim=256``. ``pos_encoding`` "sinusoidal" works for any length; "learned" is MLD's own
     (a (max_len, h) parameter, uniform init; MLD uses max_len 500).
 
-    ``query_band`` (ours; MLD: 0) is the number of frequencies of the decoder's latent-modulated band
-    (module docstring), ``band_periods`` its shortest and longest period in frames.
-
     ``logvar_offset`` is a constant added to the encoder's log sigma^2 (MLD: 0). MLD reads log sigma^2
     straight off the encoder's final LayerNorm, so it starts near 0 (sigma ~ 1, as wide as the prior)
     and the reconstruction loss narrows it only slowly, so the decoder trains on latents that are
@@ -108,20 +94,6 @@ class MotionVAEConfig:
     max_len: int = 512
     decoder_arch: DecoderArch = "cross_attention"
     logvar_offset: float = 0.0
-    query_band: int = 0
-    encoder_band: int = 0
-    band_periods: tuple[float, float] = (4.0, 16.0)
-
-    def __post_init__(self) -> None:
-        for key in ("query_band", "encoder_band"):
-            n = getattr(self, key)
-            if isinstance(n, bool) or not isinstance(n, int) or n < 0:
-                raise ValueError(f"{key} must be an integer >= 0, got {n!r}")
-        periods = tuple(float(p) for p in self.band_periods)
-        if len(periods) != 2 or not 2.0 <= periods[0] <= periods[1]:
-            raise ValueError(f"band_periods must be [shortest, longest] frames, 2 <= shortest <= longest, "
-                             f"got {self.band_periods!r}")
-        object.__setattr__(self, "band_periods", periods)
 
     @property
     def width(self) -> int:
@@ -176,13 +148,6 @@ class MotionVAE(nn.Module):
         self.skel_embedding = nn.Linear(cfg.feature_dim, h)
         self.dist_tokens = nn.Parameter(torch.randn(2 * n, h))
         self.encoder_pe = PositionalEncoding(h, cfg.pos_encoding, cfg.max_len)
-        self.spectral_in: nn.Linear | None = None
-        if cfg.encoder_band:
-            shortest, longest = cfg.band_periods
-            self.register_buffer("encoder_omega", torch.linspace(2 * np.pi / longest, 2 * np.pi / shortest,
-                                                                 cfg.encoder_band), persistent=False)
-            self.spectral_in = nn.Linear(cfg.feature_dim, h)
-            self.spectral_tokens = nn.Parameter(torch.randn(2 * cfg.encoder_band, h) * 0.02)
         self.encoder = SkipTransformer(**common)
         self.latent_out: nn.Module = nn.Linear(h, c) if cfg.hidden_dim is not None else nn.Identity()
         # decoder
@@ -192,14 +157,6 @@ class MotionVAE(nn.Module):
             raise ValueError(f"unknown decoder_arch {cfg.decoder_arch!r}")
         self.decoder = SkipTransformer(**common, cross_attention=cfg.decoder_arch == "cross_attention")
         self.final_layer = nn.Linear(h, cfg.feature_dim)
-        self.band_mod: nn.Linear | None = None
-        self.band_proj: nn.Linear | None = None
-        if cfg.query_band:
-            shortest, longest = cfg.band_periods
-            self.register_buffer("band_omega", torch.linspace(2 * np.pi / longest, 2 * np.pi / shortest,
-                                                              cfg.query_band), persistent=False)
-            self.band_mod = nn.Linear(n * c, 2 * cfg.query_band)
-            self.band_proj = nn.Linear(2 * cfg.query_band, h)
 
     # ------------------------------------------------------------------------------------------ encoder
     def encode_distribution(self, features: Tensor, lengths: Tensor | Sequence[int]) -> LatentDistribution:
@@ -210,23 +167,10 @@ class MotionVAE(nn.Module):
         b, t, _ = features.shape
         n = self.config.latent_tokens
         valid = lengths_to_mask(torch.as_tensor(lengths, device=features.device), t)
-        spectral = self.spectral(features, valid)
-        x = torch.cat([self.dist_tokens[None].expand(b, -1, -1), spectral, self.skel_embedding(features)], dim=1)
-        pad = torch.cat([valid.new_zeros(b, 2 * n + spectral.shape[1]), ~valid], dim=1)
+        x = torch.cat([self.dist_tokens[None].expand(b, -1, -1), self.skel_embedding(features)], dim=1)
+        pad = torch.cat([valid.new_zeros(b, 2 * n), ~valid], dim=1)
         out = self.latent_out(self.encoder(self.encoder_pe(x), key_padding_mask=pad)[:, : 2 * n])
         return LatentDistribution(out[:, :n], out[:, n:] + self.config.logvar_offset)
-
-    def spectral(self, features: Tensor, valid: Tensor) -> Tensor:
-        """The encoder's band tokens: the valid frames' ``Linear(D -> h)`` projected on each sine and
-        cosine of the band, averaged over the valid frames, plus a learned token each: (B, 2n, h); (B, 0, h)
-        when ``encoder_band`` is 0."""
-        if self.spectral_in is None:
-            return features.new_zeros(features.shape[0], 0, self.config.width)
-        t = features.shape[1]
-        angle = torch.arange(t, device=features.device, dtype=features.dtype)[:, None] * self.encoder_omega
-        basis = torch.cat([angle.sin(), angle.cos()], dim=-1)[None] * valid[..., None]  # (B, T, 2n)
-        coef = torch.einsum("btk,bth->bkh", basis, self.spectral_in(features))
-        return coef / valid.sum(1).clamp(min=1)[:, None, None] + self.spectral_tokens
 
     def encode(
         self,
@@ -256,24 +200,14 @@ class MotionVAE(nn.Module):
         t = valid.shape[1]
         memory = self.latent_in(z)
         queries = self.decoder_pe.encoding(t, z.device).to(memory.dtype)[None].expand(b, -1, -1)
-        band = self.query_band(z, t)
         if self.config.decoder_arch == "cross_attention":
-            out = self.decoder(queries + band, key_padding_mask=~valid, memory=memory)
+            out = self.decoder(queries, key_padding_mask=~valid, memory=memory)
         else:
             n = memory.shape[1]
-            x = self.decoder_pe(torch.cat([memory, band.expand(b, t, -1)], dim=1))
+            x = self.decoder_pe(torch.cat([memory, torch.zeros_like(queries)], dim=1))
             pad = torch.cat([valid.new_zeros(b, n), ~valid], dim=1)
             out = self.decoder(x, key_padding_mask=pad)[:, n:]
         return torch.where(valid[..., None], self.final_layer(out), 0.0)  # where, not *: no NaN can leak
-
-    def query_band(self, z: Tensor, num_frames: int) -> Tensor:
-        """The band term ``W_b (b(t) * m(z))`` of the frame queries (module docstring): (B, T, h), or a
-        zero (1, 1, h) when ``query_band`` is 0."""
-        if self.band_mod is None or self.band_proj is None:
-            return z.new_zeros(1, 1, self.config.width)
-        angle = torch.arange(num_frames, device=z.device, dtype=z.dtype)[:, None] * self.band_omega.to(z.dtype)
-        waves = torch.cat([angle.sin(), angle.cos()], dim=-1)  # (T, 2n)
-        return self.band_proj(waves[None] * self.band_mod(z.flatten(1))[:, None])
 
     def decode_by_length(self, z: Tensor, lengths: Tensor | Sequence[int], num_frames: int | None = None,
                          chunk_size: int = 64) -> Tensor:

@@ -77,8 +77,7 @@ def test_shapes_and_latent_projection() -> None:
 
 @pytest.mark.parametrize(
     "overrides",
-    [{}, {"decoder_arch": "self_attention"}, {"pos_encoding": "learned", "max_len": 32}, {"norm_first": True},
-     {"query_band": 3}, {"query_band": 3, "decoder_arch": "self_attention"}, {"encoder_band": 3}],
+    [{}, {"decoder_arch": "self_attention"}, {"pos_encoding": "learned", "max_len": 32}, {"norm_first": True}],
 )
 def test_padding_does_not_change_valid_outputs(overrides: dict[str, object]) -> None:
     vae = _tiny(**overrides).eval()
@@ -121,72 +120,6 @@ def test_decode_by_length_equals_one_padded_batch(decoder_arch: str) -> None:
     torch.testing.assert_close(chunked, full, atol=1e-5, rtol=0)
     assert bool((chunked[torch.arange(33)[None, :] >= lengths[:, None]] == 0).all())
     assert vae.decode_by_length(z, lengths).shape == (7, 30, D)
-
-
-def test_query_band_known_values() -> None:
-    """The band term is ``W_b (b(t) * m(z))``: set W_b to pick one channel and m to weigh one sine and
-    one cosine, and it is that swing; its frequencies span the configured periods; off, it is zero."""
-    vae = _tiny(query_band=3, band_periods=[4, 16]).eval()
-    torch.testing.assert_close(vae.band_omega, 2 * math.pi * torch.tensor([1 / 16, (1 / 16 + 1 / 4) / 2, 1 / 4]))
-    assert vae.band_mod is not None and vae.band_proj is not None
-    with torch.no_grad():
-        vae.band_mod.weight.zero_()
-        vae.band_mod.weight[1, 0] = 1.0  # the sine of w_1 weighed by z's first entry
-        vae.band_mod.bias.copy_(torch.tensor([0.0, 0.0, 0.0, 0.0, 0.0, 0.5]))  # plus 0.5 of w_2's cosine
-        vae.band_proj.weight.zero_()
-        vae.band_proj.weight[0] = 1.0  # channel 0 sums the weighted band
-        vae.band_proj.bias.zero_()
-    z = torch.zeros(2, 2, 8)
-    z[0, 0, 0], z[1, 0, 0] = 2.0, -1.0
-    t = torch.arange(20, dtype=torch.float32)
-    w1, w2 = 2 * math.pi * 5 / 32, 2 * math.pi / 4
-    band = vae.query_band(z, 20)
-    assert band.shape == (2, 20, 8)
-    for b, a in enumerate((2.0, -1.0)):
-        torch.testing.assert_close(band[b, :, 0], a * torch.sin(w1 * t) + 0.5 * torch.cos(w2 * t), atol=1e-5, rtol=0)
-    assert float(band[:, :, 1:].abs().max()) == 0.0
-    # the band reaches the decoded motion: without it the same z decodes to other frames
-    with_band = vae.decode(z, [20, 20])
-    with torch.no_grad():
-        vae.band_proj.weight.zero_()
-    assert float((with_band - vae.decode(z, [20, 20])).abs().max()) > 1e-3
-    off = _tiny()
-    assert off.band_mod is None and float(off.query_band(z, 20).abs().max()) == 0.0
-    assert not any(name.startswith("band") for name in off.state_dict())
-    # the frequencies are fixed, not saved: a checkpoint holds only the two linear maps
-    assert {k for k in vae.state_dict() if k.startswith("band")} == {
-        "band_mod.weight", "band_mod.bias", "band_proj.weight", "band_proj.bias"}
-
-
-def test_encoder_band_known_values() -> None:
-    """The encoder's band tokens are the valid frames' projection on each sine and cosine, averaged:
-    a feature that is the band's fastest sine gives 1/2 on that sine and 0 on every other basis
-    function (whole periods), whatever follows in the padding."""
-    vae = _tiny(encoder_band=2, band_periods=[4, 16]).eval()
-    assert vae.spectral_in is not None
-    with torch.no_grad():
-        vae.spectral_in.weight.zero_()
-        vae.spectral_in.weight[0, 0] = 1.0  # channel 0 reads feature 0
-        vae.spectral_in.bias.zero_()
-        vae.spectral_tokens.zero_()
-    t = torch.arange(20, dtype=torch.float32)
-    x = torch.zeros(1, 20, D)
-    x[0, :, 0] = torch.sin(2 * math.pi / 4 * t)
-    x[0, 16:] = 7.0  # padding: frames 16-19
-    valid = torch.arange(20)[None] < 16
-    tokens = vae.spectral(x, valid)
-    assert tokens.shape == (1, 4, 8)
-    expected = torch.tensor([0.0, 0.5, 0.0, 0.0])  # the sines of periods 16 and 4, then their cosines
-    torch.testing.assert_close(tokens[0, :, 0], expected, atol=1e-6, rtol=0)
-    assert float(tokens[0, :, 1:].abs().max()) == 0.0
-    assert _tiny().spectral(x, valid).shape == (1, 0, 8)
-
-
-@pytest.mark.parametrize("bad", [{"encoder_band": 2.5}, {"query_band": -1}, {"query_band": True},
-                                 {"band_periods": [16, 4]}, {"band_periods": [1, 4]}, {"band_periods": [4]}])
-def test_band_rejects_bad_settings(bad: dict[str, object]) -> None:
-    with pytest.raises(ValueError, match="band"):
-        MotionVAEConfig(**bad)
 
 
 def test_reparameterisation_uses_the_generator() -> None:
