@@ -49,6 +49,21 @@ def test_small_sways_and_a_hand_down_are_no_swings():
     assert jm.swing_count(down, "right") == 0
 
 
+def test_a_wave_is_four_swings_in_one_raised_stretch_with_the_hands_apart():
+    assert jm.waving_side(waving()) == "right"
+    assert jm.waving_side(waving(side="left")) == "left"
+    assert jm.waving_side(waving(blocks=4)) is None  # 3 swings
+    assert jm.waving_side(body()) is None
+    split = waving()
+    split[45:50, jm.R_WRIST, 1] -= 1.0  # lowered for a block: 2 and 3 swings in two stretches
+    assert jm.swing_count(split, "right") >= 4 and jm.waving_side(split) is None
+    clap = waving()
+    clap[30:70, jm.L_WRIST] = clap[30:70, jm.R_WRIST] + np.array([0.2, 0.0, 0.0])  # hands 0.2 m apart
+    assert jm.waving_side(clap) is None
+    clap[30:70, jm.L_WRIST] += np.array([0.15, 0.0, 0.0])  # 0.35 m apart: two raised hands, not meeting
+    assert jm.waving_side(clap) == "right"
+
+
 def test_a_perfect_reconstruction_keeps_everything():
     motions = [turning(180), kick(0), waving(), jumps([20, 45, 70]), body()]
     out = jm.reconstruction_detail(motions, [m.copy() for m in motions])
