@@ -71,16 +71,20 @@ def net_turn(joints: np.ndarray) -> float:
     return float(np.degrees(h[-1] - h[0]))
 
 
+def _runs(mask: np.ndarray) -> list[tuple[int, int]]:
+    """(start, end) of each run of True frames in ``mask`` (T,), end exclusive."""
+    edges = np.diff(np.concatenate([[0], mask.astype(np.int8), [0]]))
+    return list(zip(np.flatnonzero(edges == 1).tolist(), np.flatnonzero(edges == -1).tolist(), strict=True))
+
+
 def airborne_runs(joints: np.ndarray) -> list[tuple[int, int]]:
     """(start, end) frames of the airborne episodes: both feet above the floor + ``AIR_MARGIN`` for
     ``AIR_FRAMES`` frames or more, runs split by one grounded frame merged."""
     left, right = joints[:, LEFT_FOOT, 1].min(1), joints[:, RIGHT_FOOT, 1].min(1)
     floor = np.percentile(np.minimum(left, right), 10)
     air = (left > floor + AIR_MARGIN) & (right > floor + AIR_MARGIN)
-    edges = np.diff(np.concatenate([[0], air.astype(int), [0]]))
-    runs = list(zip(np.flatnonzero(edges == 1), np.flatnonzero(edges == -1), strict=True))
     merged: list[list[int]] = []
-    for start, end in runs:
+    for start, end in _runs(air):
         if merged and start - merged[-1][1] <= 1:
             merged[-1][1] = end
         else:
@@ -132,10 +136,8 @@ def waving_side(joints: np.ndarray) -> str | None:
     raised = joints[:, wrist, 1] > joints[:, HEAD, 1]
     if np.linalg.norm(joints[raised, L_WRIST] - joints[raised, R_WRIST], axis=-1).min() < HANDS_APART:
         return None
-    edges = np.flatnonzero(np.diff(np.concatenate([[0], raised.astype(np.int8), [0]])))
-    starts, stops = edges[::2], edges[1::2]
-    longest = int(np.argmax(stops - starts))
-    if swing_count(joints[starts[longest]: stops[longest]], side) < WAVE_SWINGS:
+    start, end = max(_runs(raised), key=lambda run: run[1] - run[0])
+    if swing_count(joints[start:end], side) < WAVE_SWINGS:
         return None
     return side
 
