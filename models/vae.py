@@ -43,6 +43,13 @@ term's root height still does.
 beta 1 the joint term is a squared error for every error a pose has, and its gradient fades as the
 error shrinks; a beta of a few centimetres makes it an L1 error beyond that, which keeps pulling on a
 body that faces the wrong way (docs/findings.md, 2026-12-02 (night)).
+
+``heading_weight`` (ours; MLD has no such term, 0 by default) adds ``w_h L1(h(x_hat), h(x))`` with
+``h_t = 2 sum_{k<t} x[k, 0]`` the body's heading angle in radians, the integral of the root's angular
+velocity that ``recover_root_rot_pos`` turns into the heading quaternion. The per-frame feature term
+sees a turn as a short run of angular velocities; a run returned a little low ends the turn short,
+and every later frame faces the wrong way. The L1 on the integral charges that miss on every later
+frame, at any size of error.
 """
 
 from __future__ import annotations
@@ -259,6 +266,16 @@ def _stat(x: Tensor | np.ndarray | Sequence[float], like: Tensor) -> Tensor:
     return torch.as_tensor(np.asarray(x) if not isinstance(x, Tensor) else x).to(like.device, like.dtype)
 
 
+def heading_angle(omega: Tensor) -> Tensor:
+    """(..., T) root angular velocities (feature 0, denormalised) -> (..., T) heading angles in radians.
+
+    ``h_t = 2 sum_{k<t} omega_k``: ``recover_root_rot_pos`` turns frame t by the quaternion
+    ``(cos a_t, 0, sin a_t, 0)`` with ``a_t`` the exclusive sum, a rotation by ``2 a_t`` about y.
+    Frame t depends on frames before it only, so padding after a motion's end never reaches it.
+    """
+    return 2.0 * torch.cat([torch.zeros_like(omega[..., :1]), torch.cumsum(omega[..., :-1], -1)], -1)
+
+
 def reconstruction_losses(
     recon: Tensor,
     target: Tensor,
@@ -269,12 +286,13 @@ def reconstruction_losses(
     joint_space: JointSpace = "global",
     joint_beta: float = 1.0,
 ) -> dict[str, Tensor]:
-    """Feature and joint reconstruction terms on normalised features (B, T, D), masked to valid frames.
+    """Feature, joint and heading reconstruction terms on normalised features (B, T, D), masked to valid frames.
 
     ``feature = SmoothL1(x_hat, x)``; ``joint = SmoothL1(J(x_hat), J(x))`` with
     ``J(x) = recover_from_ric(x * std + mean, joints_num)`` (B, T, J, 3), global positions in metres,
     minus each frame's root joint when ``joint_space="root"``; SmoothL1 beta 1 on the features and
-    ``joint_beta`` (metres) on the joints (see the module docstring).
+    ``joint_beta`` (metres) on the joints; ``heading = L1(h(x_hat), h(x))`` on :func:`heading_angle`
+    (radians) (see the module docstring).
     """
     if joint_space not in ("global", "root"):
         raise ValueError(f"joint_space must be 'global' or 'root', got {joint_space!r}")
@@ -285,7 +303,10 @@ def reconstruction_losses(
     j = recover_from_ric(target[..., :used] * std_t + mean_t, joints_num)
     if joint_space == "root":
         j_hat, j = j_hat - j_hat[..., :1, :], j - j[..., :1, :]
-    return {"feature": masked_smooth_l1(recon, target, valid), "joint": masked_smooth_l1(j_hat, j, valid, joint_beta)}
+    h_hat = heading_angle(recon[..., 0] * std_t[0] + mean_t[0]).unsqueeze(-1)
+    h = heading_angle(target[..., 0] * std_t[0] + mean_t[0]).unsqueeze(-1)
+    return {"feature": masked_smooth_l1(recon, target, valid), "joint": masked_smooth_l1(j_hat, j, valid, joint_beta),
+            "heading": masked_smooth_l1(h_hat, h, valid, beta=0.0)}
 
 
 def vae_loss(
@@ -301,16 +322,18 @@ def vae_loss(
     generator: torch.Generator | None = None,
     joint_space: JointSpace = "global",
     joint_beta: float = 1.0,
+    heading_weight: float = 0.0,
 ) -> dict[str, Tensor]:
     """MLD's VAE objective on a batch of normalised features (B, T, D) with lengths (B,).
 
-    Returns scalars ``feature``, ``joint``, ``kl`` (unweighted) and
-    ``total = feature_weight * feature + joint_weight * joint + kl_weight * kl``.
+    Returns scalars ``feature``, ``joint``, ``heading``, ``kl`` (unweighted) and
+    ``total = feature_weight * feature + joint_weight * joint + heading_weight * heading + kl_weight * kl``.
     ``mean``/``std`` (D,) are the dataset statistics the features were normalised with;
     ``joint_space`` and ``joint_beta`` are those of :func:`reconstruction_losses`.
     """
     recon, dist = model(features, lengths, generator)
     terms = reconstruction_losses(recon, features, lengths, mean, std, joints_num, joint_space, joint_beta)
     kl = dist.kl()
-    total = feature_weight * terms["feature"] + joint_weight * terms["joint"] + kl_weight * kl
+    total = (feature_weight * terms["feature"] + joint_weight * terms["joint"] + heading_weight * terms["heading"]
+             + kl_weight * kl)
     return {**terms, "kl": kl, "total": total}

@@ -3,7 +3,7 @@
 ``python -m stages.train_vae [key=value ...]`` trains :class:`models.vae.MotionVAE` on the
 training motions of the feature store (normalised with its Mean/Std) through the one runner:
 smooth-L1 on features and on joints (``recover_from_ric``; global as MLD, or root-aligned with
-``joint_space: root``; beta ``joint_beta`` metres) + KL weight 1e-4, AdamW, cosine schedule with
+``joint_space: root``; beta ``joint_beta`` metres) + ``heading_weight`` x L1 on the integrated heading + KL weight 1e-4, AdamW, cosine schedule with
 warm-up, gradient clipping.
 Writes ``artifacts/train_vae/`` (model.pt, metrics.json, loss.csv/png).
 
@@ -44,15 +44,15 @@ def step(batch: dict, ctx: StepContext) -> dict[str, torch.Tensor]:
     cfg = ctx.config
     losses = vae_loss(ctx.models["vae"], batch["motion"], batch["length"], ctx.frozen["mean"], ctx.frozen["std"],
                       cfg["joints_num"], kl_weight=cfg["kl_weight"], joint_weight=cfg["joint_weight"],
-                      joint_space=cfg["joint_space"], joint_beta=cfg["joint_beta"])
+                      joint_space=cfg["joint_space"], joint_beta=cfg["joint_beta"], heading_weight=cfg["heading_weight"])
     ctx.update(losses["total"])
     return {"loss": losses["total"].detach(), "feature": losses["feature"].detach(),
-            "joint": losses["joint"].detach(), "kl": losses["kl"].detach()}
+            "joint": losses["joint"].detach(), "heading": losses["heading"].detach(), "kl": losses["kl"].detach()}
 
 
 SECTION = "train_vae"
 SECTION_KEYS = ("lr", "weight_decay", "crop_frames", "kl_weight", "joint_weight", "joint_space", "joint_beta",
-                "model", "loop")
+                "heading_weight", "model", "loop")
 
 
 def check_section(params: dict[str, Any]) -> None:
@@ -60,7 +60,7 @@ def check_section(params: dict[str, Any]) -> None:
     naming the key, its value and what is allowed."""
     cfg = check_keys(params[SECTION], SECTION, SECTION_KEYS)
     check_number(cfg, "lr", SECTION, low=0.0, low_open=True)
-    for key in ("weight_decay", "kl_weight", "joint_weight"):
+    for key in ("weight_decay", "kl_weight", "joint_weight", "heading_weight"):
         check_number(cfg, key, SECTION, low=0.0)
     check_number(cfg, "joint_beta", SECTION, low=0.0, low_open=True)
     check_number(cfg, "crop_frames", SECTION, low=1, integer=True)
@@ -77,7 +77,7 @@ def stage_config(params: dict[str, Any]) -> dict[str, Any]:
         "joints_num": store.joints_num, "crop_frames": cfg["crop_frames"],
         "model": {**cfg["model"], "feature_dim": store.feature_dim}, "lr": cfg["lr"],
         "weight_decay": cfg["weight_decay"], "kl_weight": cfg["kl_weight"], "joint_weight": cfg["joint_weight"],
-        "joint_space": cfg["joint_space"], "joint_beta": cfg["joint_beta"],
+        "joint_space": cfg["joint_space"], "joint_beta": cfg["joint_beta"], "heading_weight": cfg["heading_weight"],
     }
 
 

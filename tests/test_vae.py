@@ -15,6 +15,7 @@ from models.vae import (
     MotionVAE,
     MotionVAEConfig,
     kl_to_standard_normal,
+    heading_angle,
     masked_smooth_l1,
     reconstruction_losses,
     vae_loss,
@@ -243,15 +244,58 @@ def test_joint_beta_known_answer(stats: tuple[torch.Tensor, ...]) -> None:
     torch.testing.assert_close(out["joint"], expected)
 
 
+def test_heading_angle_is_the_heading_recover_root_rot_pos_turns_by() -> None:
+    """h_t = 2 * sum_{k<t} omega_k is the angle of the quaternion (cos a_t, 0, sin a_t, 0) of features.py."""
+    from data.features import recover_root_rot_pos
+
+    omega = torch.randn(2, 30, generator=_gen(3)) * 0.05
+    feats = torch.zeros(2, 30, D)
+    feats[..., 0] = omega
+    quat, _ = recover_root_rot_pos(feats)
+    h = heading_angle(omega)
+    torch.testing.assert_close(torch.cos(h / 2), quat[..., 0])
+    torch.testing.assert_close(torch.sin(h / 2), quat[..., 2])
+    torch.testing.assert_close(h[:, 0], torch.zeros(2))
+
+
+def test_heading_term_charges_a_short_turn_on_every_later_frame(stats: tuple[torch.Tensor, ...]) -> None:
+    """A turn of 10 frames returned at 0.9 of its angular velocity ends 0.1 of the turn short: the L1 of the
+    heading term grows over the turn and holds the full miss on every frame after it; padding adds nothing."""
+    mean, std = stats
+    frames, turn = 30, math.pi  # a 180 degree turn over frames 5..14
+    omega = torch.zeros(frames)
+    omega[5:15] = turn / 2 / 10  # h = 2 * cumsum: 10 frames of turn / 20
+    target_raw = torch.zeros(1, frames, D) + mean
+    target_raw[0, :, 0] = omega
+    short_raw = target_raw.clone()
+    short_raw[0, :, 0] = 0.9 * omega
+    target, short = (target_raw - mean) / std, (short_raw - mean) / std
+    h = heading_angle(omega)
+    miss = (h - heading_angle(0.9 * omega)).abs()
+    assert float(miss[-1]) == pytest.approx(0.1 * turn, rel=1e-5) and float(miss[:6].abs().max()) == 0.0
+    got = reconstruction_losses(short, target, torch.tensor([frames]), mean, std, JOINTS)["heading"]
+    assert float(got) == pytest.approx(float(miss.mean()), rel=1e-4)
+    # padding: the same motion in a longer padded batch with a wrong tail costs the same
+    pad = torch.cat([short, torch.randn(1, 10, D, generator=_gen(0))], 1)
+    pad_target = torch.cat([target, torch.zeros(1, 10, D)], 1)
+    padded = reconstruction_losses(pad, pad_target, torch.tensor([frames]), mean, std, JOINTS)["heading"]
+    torch.testing.assert_close(padded, got)
+
+
 def test_vae_loss_combines_terms(stats: tuple[torch.Tensor, ...]) -> None:
     mean, std = stats
     vae = _tiny()
     lengths = torch.tensor([8, 5])
     x = _smooth_motions(2, 8, lengths)
+    torch.manual_seed(5)  # the same dropout draws for both calls
     out = vae_loss(vae, x, lengths, mean.numpy(), std.numpy(), JOINTS, kl_weight=0.1, joint_weight=2.0,
                    generator=_gen(0))
-    assert set(out) == {"feature", "joint", "kl", "total"}
+    assert set(out) == {"feature", "joint", "heading", "kl", "total"}
     torch.testing.assert_close(out["total"], out["feature"] + 2.0 * out["joint"] + 0.1 * out["kl"])
+    torch.manual_seed(5)
+    weighted = vae_loss(vae, x, lengths, mean.numpy(), std.numpy(), JOINTS, kl_weight=0.1, joint_weight=2.0,
+                        heading_weight=3.0, generator=_gen(0))
+    torch.testing.assert_close(weighted["total"], out["total"] + 3.0 * out["heading"])
     out["total"].backward()
     assert all(p.grad is not None for p in vae.encoder.parameters())
     assert vae.dist_tokens.grad is not None and vae.final_layer.weight.grad is not None
