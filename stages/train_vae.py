@@ -3,8 +3,8 @@
 ``python -m stages.train_vae [key=value ...]`` trains :class:`models.vae.MotionVAE` on the
 training motions of the feature store (normalised with its Mean/Std) through the one runner:
 smooth-L1 on features and on joints (``recover_from_ric``; global as MLD, or root-aligned with
-``joint_space: root``; beta ``joint_beta`` metres) + ``heading_weight`` x L1 on the integrated heading + KL weight 1e-4, AdamW, cosine schedule with
-warm-up, gradient clipping.
+``joint_space: root``; beta ``joint_beta`` metres) + ``heading_weight`` x L1 on the integrated heading
++ KL weight 1e-4, AdamW, cosine schedule with warm-up, gradient clipping.
 Writes ``artifacts/train_vae/`` (model.pt, metrics.json, loss.csv/png).
 
 ``python -m stages.sweep train_vae`` sweeps it (:func:`sweep_target`), ranking the trials by
@@ -44,7 +44,8 @@ def step(batch: dict, ctx: StepContext) -> dict[str, torch.Tensor]:
     cfg = ctx.config
     losses = vae_loss(ctx.models["vae"], batch["motion"], batch["length"], ctx.frozen["mean"], ctx.frozen["std"],
                       cfg["joints_num"], kl_weight=cfg["kl_weight"], joint_weight=cfg["joint_weight"],
-                      joint_space=cfg["joint_space"], joint_beta=cfg["joint_beta"], heading_weight=cfg["heading_weight"])
+                      joint_space=cfg["joint_space"], joint_beta=cfg["joint_beta"],
+                      heading_weight=cfg["heading_weight"])
     ctx.update(losses["total"])
     return {"loss": losses["total"].detach(), "feature": losses["feature"].detach(),
             "joint": losses["joint"].detach(), "heading": losses["heading"].detach(), "kl": losses["kl"].detach()}
