@@ -209,13 +209,21 @@ def _unrotate_yaw(c: torch.Tensor, s: torch.Tensor, x: torch.Tensor, z: torch.Te
     return x + 2.0 * (c * -sz - s * sx), z + 2.0 * (c * sx - s * sz)
 
 
+def root_angle(omega: torch.Tensor) -> torch.Tensor:
+    """(..., T) root angular velocities (feature 0, raw) -> (..., T) ``a_t = sum_{k<t} omega_k``.
+
+    The heading quaternion of frame t is ``(cos a_t, 0, sin a_t, 0)``, a turn by ``2 a_t`` about y.
+    Frame t reads only the frames before it.
+    """
+    return torch.cat([torch.zeros_like(omega[..., :1]), torch.cumsum(omega[..., :-1], -1)], -1)
+
+
 def _recover_root_torch(data: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """(..., T, D) tensor -> cos and sin of the heading angle (..., T) each, root positions (..., T, 3).
 
-    The heading quaternion of frame t is ``(cos a_t, 0, sin a_t, 0)``.
+    The heading quaternion of frame t is ``(cos a_t, 0, sin a_t, 0)`` (:func:`root_angle`).
     """
-    omega = data[..., 0]
-    angle = torch.cat([torch.zeros_like(omega[..., :1]), torch.cumsum(omega[..., :-1], -1)], -1)
+    angle = root_angle(data[..., 0])
     c, s = torch.cos(angle), torch.sin(angle)
     vel = torch.stack(_unrotate_yaw(c[..., 1:], s[..., 1:], data[..., :-1, 1], data[..., :-1, 2]), -1)
     xz = torch.cat([torch.zeros_like(vel[..., :1, :]), torch.cumsum(vel, -2)], -2)

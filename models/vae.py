@@ -44,12 +44,12 @@ beta 1 the joint term is a squared error for every error a pose has, and its gra
 error shrinks; a beta of a few centimetres makes it an L1 error beyond that, which keeps pulling on a
 body that faces the wrong way (docs/findings.md, 2026-12-02 (night)).
 
-``heading_weight`` (ours; MLD has no such term, 0 by default) adds ``w_h L1(h(x_hat), h(x))`` with
-``h_t = 2 sum_{k<t} x[k, 0]`` the body's heading angle in radians, the integral of the root's angular
-velocity that ``recover_root_rot_pos`` turns into the heading quaternion. The per-frame feature term
-sees a turn as a short run of angular velocities; a run returned a little low ends the turn short,
-and every later frame faces the wrong way. The L1 on the integral charges that miss on every later
-frame, at any size of error.
+``heading_weight`` (ours; MLD has no such term: 0, the default, is MLD's loss) adds
+``w_h L1(h(x_hat), h(x))`` with ``h_t = 2 sum_{k<t} x[k, 0]`` the body's heading angle in radians,
+the integral of the root's angular velocity that ``recover_root_rot_pos`` turns into the heading
+quaternion. The per-frame feature term sees a turn as a short run of angular velocities; a run
+returned a little low ends the turn short, and every later frame faces the wrong way. The L1 on the
+integral charges that miss on every later frame, at any size of error.
 """
 
 from __future__ import annotations
@@ -63,7 +63,7 @@ import torch
 from torch import Tensor, nn
 from torch.nn import functional as F
 
-from data.features import feature_groups, recover_from_ric
+from data.features import feature_groups, recover_from_ric, root_angle
 from models.transformer import Activation, PositionalEncoding, PositionalEncodingKind, SkipTransformer, lengths_to_mask
 
 DecoderArch = Literal["cross_attention", "self_attention"]
@@ -269,11 +269,11 @@ def _stat(x: Tensor | np.ndarray | Sequence[float], like: Tensor) -> Tensor:
 def heading_angle(omega: Tensor) -> Tensor:
     """(..., T) root angular velocities (feature 0, denormalised) -> (..., T) heading angles in radians.
 
-    ``h_t = 2 sum_{k<t} omega_k``: ``recover_root_rot_pos`` turns frame t by the quaternion
-    ``(cos a_t, 0, sin a_t, 0)`` with ``a_t`` the exclusive sum, a rotation by ``2 a_t`` about y.
-    Frame t depends on frames before it only, so padding after a motion's end never reaches it.
+    ``h_t = 2 a_t`` with ``a_t`` of :func:`data.features.root_angle`, the angle ``recover_root_rot_pos``
+    turns frame t by. Frame t depends on frames before it only, so padding after a motion's end never
+    reaches it.
     """
-    return 2.0 * torch.cat([torch.zeros_like(omega[..., :1]), torch.cumsum(omega[..., :-1], -1)], -1)
+    return 2.0 * root_angle(omega)
 
 
 def reconstruction_losses(
