@@ -133,6 +133,7 @@ from torch.nn.attention import SDPBackend, sdpa_kernel
 from data.features import feature_groups, recover_from_ric
 from data.skeleton import SKELETONS
 from models.diffusion import cfg_combine, condition_dropout, sample_timesteps
+from models.patches import from_patches, to_patches
 from models.transformer import PositionalEncoding, TransformerLayer, eval_mode, lengths_to_mask, timestep_embedding
 
 Condition = Literal["text", "action"]
@@ -430,23 +431,6 @@ def mapping_network(z_dim: int, dim: int, num_layers: int = 5) -> nn.Sequential:
     for i in range(num_layers):
         mods += [nn.Linear(z_dim if i == 0 else dim, dim), nn.LeakyReLU(0.2)]
     return nn.Sequential(*mods)
-
-
-def to_patches(x: Tensor, valid: Tensor, patch: int) -> tuple[Tensor, Tensor]:
-    """Frames (B, N, C) with padded frames zeroed -> patches (B, ceil(N / P), P C) and their validity
-    (B, ceil(N / P)) (a patch is valid when its first frame is)."""
-    b, n, c = x.shape
-    x = torch.where(valid[..., None], x, 0.0)
-    extra = -n % patch
-    if extra:
-        x = F.pad(x, (0, 0, 0, extra))
-    return x.reshape(b, (n + extra) // patch, patch * c), valid[:, ::patch]
-
-
-def from_patches(x: Tensor, num_frames: int, patch: int) -> Tensor:
-    """Patches (B, M, P C) -> frames (B, num_frames, C) (the inverse of :func:`to_patches`' layout)."""
-    b, m, pc = x.shape
-    return x.reshape(b, m * patch, pc // patch)[:, :num_frames]
 
 
 class EMDMGenerator(nn.Module):

@@ -128,6 +128,12 @@ Choices (each deliberate; "code" = the released MotionDiffuse code):
     so ``Linear(E -> h)`` maps it to its bias, a learned vector. It needs no new parameters, so a
     model trained with ``p_uncond = 0`` loads unchanged (and samples at w = 1 exactly as before).
     The compositions (items 8-9) guide each part's or segment's prediction before combining them.
+14. Frame patches (``patch_frames`` P, ours; the code: 1, one token per frame): the motion branch
+    reads and writes P consecutive frames per token (``Linear(P D -> h)`` in, zero-initialised
+    ``Linear(h -> P D)`` out, the positional table over ceil(max_len / P) tokens) through
+    :mod:`models.patches`, as EMDM's item 9, so attention, the FFNs and their temporal kernel run on
+    N / P tokens. The input skip still filters x_t frame by frame. A token is valid when its first
+    frame is; the valid frames' outputs do not depend on the amount of padding.
 """
 
 from __future__ import annotations
@@ -153,6 +159,7 @@ from models.diffusion import (
     sample_timesteps,
     wiener_taps,
 )
+from models.patches import from_patches, to_patches
 from models.transformer import TransformerLayer, eval_mode, lengths_to_mask, timestep_embedding
 
 AttentionKind = Literal["linear", "softmax"]
@@ -181,7 +188,8 @@ class MotionDiffuseConfig:
     by 1000 / T as the code). ``input_skip``: add a learned per-timestep multiple of x_t to the
     prediction (module docstring item 11; the code: off); ``skip_kernel`` (odd; 1: that multiple)
     widens it to a fixed per-timestep Wiener filter over frames. ``temporal_kernel``: frames of the depthwise
-    convolution in every FFN (item 12; 0 = none, the code).
+    convolution in every FFN (item 12; 0 = none, the code). ``patch_frames``: frames per token of the motion
+    branch (item 14; 1, the code).
     """
 
     feature_dim: int = 263
@@ -204,10 +212,11 @@ class MotionDiffuseConfig:
     input_skip: bool = False
     skip_kernel: int = 1
     temporal_kernel: int = 0
+    patch_frames: int = 1
 
     def __post_init__(self) -> None:
         for name in ("feature_dim", "text_dim", "width", "layers", "heads", "ff_dim", "text_heads", "text_ff_dim",
-                     "time_embed_mult", "max_len", "num_train_timesteps"):
+                     "time_embed_mult", "max_len", "num_train_timesteps", "patch_frames"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < 1:
                 raise ValueError(f"{name} must be an integer >= 1, got {value!r}")
@@ -451,10 +460,11 @@ class MotionDiffuse(nn.Module):
         # timestep embedding
         self.time_mlp = nn.Sequential(nn.Linear(h, e), nn.SiLU(), nn.Linear(e, e))
         # motion branch
-        self.frame_in = nn.Linear(cfg.feature_dim, h)
-        self.positions = nn.Parameter(torch.randn(cfg.max_len, h))
+        p = cfg.patch_frames
+        self.frame_in = nn.Linear(p * cfg.feature_dim, h)
+        self.positions = nn.Parameter(torch.randn(-(-cfg.max_len // p), h))
         self.layers = nn.ModuleList(DecoderLayer(cfg) for _ in range(cfg.layers))
-        self.frame_out = _zero(nn.Linear(h, cfg.feature_dim))
+        self.frame_out = _zero(nn.Linear(h, p * cfg.feature_dim))
         scalar = (1.0 - cfg.make_schedule().alphas_cumprod).sqrt().float()
         self.skip = nn.Parameter(scalar) if cfg.input_skip and cfg.skip_kernel == 1 else None
         taps = None
@@ -510,11 +520,12 @@ class MotionDiffuse(nn.Module):
         dtype = self.frame_in.weight.dtype
         emb = self.time_mlp(timestep_embedding(steps, self.config.width, flip_sin_to_cos=True).to(dtype))
         emb = emb + text.emb.to(dtype)
-        h = self.frame_in(torch.where(valid[..., None], x_t.to(dtype), 0.0)) + self.positions[:n]
+        patches, token_valid = to_patches(x_t.to(dtype), valid, self.config.patch_frames)
+        h = self.frame_in(patches) + self.positions[: patches.shape[1]]
         tokens = text.tokens.to(dtype)
         for layer in self.layers:
-            h = layer(h, emb, valid, tokens, text.mask)
-        out = self.frame_out(h)
+            h = layer(h, emb, token_valid, tokens, text.mask)
+        out = from_patches(self.frame_out(h), n, self.config.patch_frames)
         if self.skip is not None:
             out = out + self.skip[steps].to(dtype)[:, None, None] * x_t.to(dtype)
         if self.skip_taps is not None:

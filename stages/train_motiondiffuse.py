@@ -46,7 +46,7 @@ SECTION_KEYS = ("lr", "ema_decay", "p_uncond", "crop_frames", "num_train_timeste
 #: Keys of ``train_motiondiffuse.model``: the network sizes (``feature_dim``/``text_dim`` come from the store,
 #: the schedule from the section's keys above).
 MODEL_KEYS = ("width", "layers", "heads", "ff_dim", "dropout", "text_layers", "text_heads", "text_ff_dim",
-              "time_embed_mult", "max_len", "attention", "input_skip", "skip_kernel", "temporal_kernel")
+              "time_embed_mult", "max_len", "attention", "input_skip", "skip_kernel", "temporal_kernel", "patch_frames")
 
 
 def dataset(config: dict) -> MotionTextDataset:
@@ -104,7 +104,8 @@ def check_section(cfg: dict[str, Any]) -> None:
     unknown, missing = sorted(set(model) - set(MODEL_KEYS)), [k for k in MODEL_KEYS if k not in model]
     if unknown or missing:
         raise ValueError(f"{SECTION}.model: unknown key(s) {unknown}, missing key(s) {missing}")
-    for key in ("width", "layers", "heads", "ff_dim", "text_heads", "text_ff_dim", "time_embed_mult", "max_len"):
+    for key in ("width", "layers", "heads", "ff_dim", "text_heads", "text_ff_dim", "time_embed_mult", "max_len",
+                "patch_frames"):
         check_number(model, key, f"{SECTION}.model", low=1, integer=True)
     check_number(model, "text_layers", f"{SECTION}.model", low=0, integer=True)
     check_number(model, "dropout", f"{SECTION}.model", low=0.0, high=1.0, high_open=True)

@@ -20,7 +20,6 @@ from models.emdm import (
     action_from_text,
     d_adversarial_loss,
     discriminator_step_losses,
-    from_patches,
     g_adversarial_loss,
     generator_step_losses,
     geometric_losses,
@@ -29,8 +28,8 @@ from models.emdm import (
     q_sample_pairs,
     r1_penalty,
     sample_emdm,
-    to_patches,
 )
+from models.patches import from_patches, to_patches
 from models.transformer import lengths_to_mask
 
 pytestmark = pytest.mark.usefixtures("one_thread")  # tiny networks (tests/conftest.py)

@@ -140,9 +140,11 @@ def test_attention_block_valid_outputs_ignore_padded_frames(kind: str) -> None:
     torch.testing.assert_close(a[1], b[1], rtol=0, atol=0)
 
 
-@pytest.mark.parametrize(("attention", "kernel"), [("linear", 0), ("softmax", 0), ("linear", 3)])
-def test_model_ignores_padding_and_amount_of_padding(attention: str, kernel: int) -> None:
-    model = _model(attention=attention, temporal_kernel=kernel)
+@pytest.mark.parametrize(("attention", "kernel", "patch"),
+                         [("linear", 0, 1), ("softmax", 0, 1), ("linear", 3, 1), ("linear", 3, 4)])
+def test_model_ignores_padding_and_amount_of_padding(attention: str, kernel: int, patch: int) -> None:
+    """Lengths 6 and 10 are no multiples of the patch: the token of frames 4-7 is half padding in sample 0."""
+    model = _model(attention=attention, temporal_kernel=kernel, patch_frames=patch)
     ws, wm = _text()
     x, t, lengths = torch.randn(2, 10, D, generator=_gen(7)), torch.tensor([3, 40]), torch.tensor([6, 10])
     x2 = x.clone()
@@ -181,6 +183,28 @@ def test_fresh_blocks_are_identities_and_fresh_model_predicts_zero() -> None:
     ws, wm = _text()
     out = model(torch.randn(2, 9, D), torch.tensor([0, 49]), ws, wm, torch.tensor([9, 4]))
     assert out.shape == (2, 9, D) and torch.count_nonzero(out) == 0
+
+
+def test_patches_read_and_write_their_frames_and_a_fresh_patched_model_predicts_zero() -> None:
+    """P = 4: the first linear reads frames 4k..4k+3 into token k and the output linear writes them back."""
+    fresh = _model(randomise=False, patch_frames=4)
+    ws, wm = _text()
+    x, t, lengths = torch.randn(2, 10, D, generator=_gen(7)), torch.tensor([3, 40]), torch.tensor([6, 10])
+    with torch.no_grad():
+        assert torch.count_nonzero(fresh(x, t, ws, wm, lengths)) == 0
+    model = _model(patch_frames=4, layers=1)
+    assert model.frame_in.in_features == 4 * D and model.frame_out.out_features == 4 * D
+    assert model.positions.shape == (8, 16)  # ceil(32 / 4) tokens
+    with torch.no_grad():  # the token mixing off: each token's output depends on its own four frames only
+        for layer in model.layers:
+            for block in (layer.self_attn, layer.cross_attn, layer.ffn):
+                block.style.out_layers[-1].weight.zero_()
+                block.style.out_layers[-1].bias.zero_()
+        base = model(x, t, ws, wm, lengths)
+        x2 = x.clone()
+        x2[1, 5] += 1.0  # frame 5 belongs to token 1 (frames 4-7)
+        changed = (model(x2, t, ws, wm, lengths) - base).abs().sum(-1)[1] > 0
+    assert changed.tolist() == [False] * 4 + [True] * 4 + [False] * 2
 
 
 def test_temporal_kernel_starts_as_the_identity_and_reaches_only_its_neighbours() -> None:
@@ -493,6 +517,7 @@ def test_time_varied_validation_names_the_segment() -> None:
         ({"max_len": 0}, "max_len"),
         ({"temporal_kernel": 4}, "temporal_kernel"),
         ({"temporal_kernel": -1}, "temporal_kernel"),
+        ({"patch_frames": 0}, "patch_frames"),
     ],
 )
 def test_config_validation_names_the_field(overrides: dict[str, object], field: str) -> None:
