@@ -6,9 +6,11 @@ The labelled test motions (one crop each, the action protocol's first draw) are 
 (k = 0..T) and denoised by the action-conditioned generator (``train_emdm_action``) from there: for
 t = k-1..0 a fresh z, the guided x0 (``sample.emdm_action_guidance``) and the posterior sample, the last
 step returning x0 itself, as :func:`models.emdm.sample_emdm` does from k = T. The table gives the
-action recogniser's accuracy on the result and its feature MSE to the real crops (normalised), and,
-for the lowest levels, the accuracy of the noisy x_k itself and of the generator's input skip alone
-(what G adds on top of it). k = T is the evaluation's sampling; k = 0 is the real crops.
+action recogniser's accuracy on the result, its feature MSE to the real crops (normalised) and its
+jitter (the mean length of the joints' second difference over time, m per frame squared, over each
+crop's own frames), and, for the lowest levels, the accuracy and jitter of the noisy x_k itself and of
+the generator's input skip alone (what G adds on top of it). k = T is the evaluation's sampling; k = 0
+is the real crops.
 ``--raw``: the raw weights instead of the EMA.
 """
 
@@ -50,6 +52,14 @@ def chain_from(generator: EMDMGenerator, schedule: EMDMSchedule, x_k: torch.Tens
     return x
 
 
+def crop_jitter(joints: np.ndarray, lengths: np.ndarray) -> float:
+    """Mean over crops of the mean length (m per frame squared) of the joints' second difference over
+    time, each crop (B, T, J, 3) read up to its own length (crops of fewer than 3 frames are skipped)."""
+    per_crop = [np.linalg.norm(np.diff(j[:n], 2, axis=0), axis=-1).mean()
+                for j, n in zip(joints, lengths, strict=True) if n >= 3]
+    return float(np.mean(per_crop))
+
+
 def main() -> None:
     torch.set_num_threads(2)
     generator, schedule, config, params = load_from_command_line(__doc__, ACTION_STAGE)
@@ -69,25 +79,32 @@ def main() -> None:
         _, logits = recognise(recogniser, renormalise(x.numpy(), mean, std, r_mean, r_std), draw.lengths)
         return float((logits.argmax(-1) == draw.labels).mean())
 
+    def jitter(x: torch.Tensor) -> float:
+        normalised = torch.as_tensor(renormalise(x.numpy(), mean, std, r_mean, r_std))
+        return crop_jitter(recogniser.joints(normalised).numpy(), draw.lengths)
+
     def mse(x: torch.Tensor) -> float:
         return float(((x - x0) ** 2 * valid).sum() / (valid.sum() * x0.shape[-1]))
 
     rng = torch.Generator().manual_seed(0)
     print(f"{len(draw.lengths)} labelled test crops, guidance {guidance}\n")
-    print("| start level k | alpha_bar_k | accuracy ↑ | feature MSE ↓ | x_k alone | input skip alone |")
-    print("|---|---|---|---|---|---|")
+    print("| start level k | alpha_bar_k | accuracy ↑ | feature MSE ↓ | jitter (m/frame²) | x_k alone: accuracy, "
+          "jitter | input skip alone: accuracy, jitter |")
+    print("|---|---|---|---|---|---|---|")
     with torch.inference_mode():
         for k in range(schedule.num_steps + 1):
             x_k = torch.where(valid, schedule.q_sample(x0, k, torch.randn(x0.shape, generator=rng)), 0.0) if k else x0
             out = chain_from(generator, schedule, x_k, k, ids, lengths, valid, guidance, rng)
             alone = skip = "–"
             if 0 < k <= 3:
-                alone = f"{accuracy(x_k):.3f}"
+                alone = f"{accuracy(x_k):.3f}, {jitter(x_k):.4f}"
                 if generator.config.input_skip:
                     steps = torch.full((x0.shape[0],), k - 1)
-                    skip = f"{accuracy(torch.where(valid, generator.skipped(x_k, steps, valid[..., 0]), 0.0)):.3f}"
+                    skipped = torch.where(valid, generator.skipped(x_k, steps, valid[..., 0]), 0.0)
+                    skip = f"{accuracy(skipped):.3f}, {jitter(skipped):.4f}"
             ab = float(schedule.alphas_cumprod[k])
-            print(f"| {k} | {ab:.4f} | {accuracy(out):.3f} | {mse(out):.3f} | {alone} | {skip} |", flush=True)
+            print(f"| {k} | {ab:.4f} | {accuracy(out):.3f} | {mse(out):.3f} | {jitter(out):.4f} | {alone} | {skip} |",
+                  flush=True)
 
 
 if __name__ == "__main__":

@@ -1,11 +1,13 @@
 """benchmarks/emdm_action_levels.py: a chain from level T is the evaluation's sampling; from level 0, the input."""
 
+import numpy as np
 import torch
 
 from models.emdm import EMDMConfig, EMDMGenerator, sample_emdm
 from tests.bench_module import load_benchmark
 
-chain_from = load_benchmark("emdm_action_levels").chain_from
+BENCH = load_benchmark("emdm_action_levels")
+chain_from = BENCH.chain_from
 
 
 def _generator() -> EMDMGenerator:
@@ -37,3 +39,13 @@ def test_chain_from_level_T_equals_sampling_and_level_0_returns_the_input() -> N
                                  torch.Generator().manual_seed(7))
         assert not torch.allclose(other_label, expected, atol=1e-3)  # the label reaches the chain
         assert torch.equal(chain_from(gen, schedule, x_T, 0, ids, lengths, valid, 2.5, torch.Generator()), x_T)
+
+
+def test_crop_jitter_is_the_second_difference_length_over_each_crops_own_frames() -> None:
+    t = np.arange(6.0)
+    joints = np.zeros((2, 6, 2, 3))
+    joints[0, :, :, 0] = (0.5 * 0.02 * t**2)[:, None]  # constant acceleration 0.02 m/frame² along x
+    joints[1, :4, :, 1] = (0.5 * 0.04 * t[:4] ** 2)[:, None]  # 0.04 over its 4 frames, then padding
+    joints[1, 4:] = 99.0  # past the crop's length: never read
+    assert np.isclose(BENCH.crop_jitter(joints, np.array([6, 4])), 0.03)
+    assert BENCH.crop_jitter(np.zeros((1, 5, 2, 3)), np.array([5])) == 0.0
