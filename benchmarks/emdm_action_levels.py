@@ -25,6 +25,7 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # the sibling benchmark emdm_levels, also when imported
 
+from contrasts import jitter  # noqa: E402
 from emdm_levels import load_from_command_line  # noqa: E402
 
 from models.emdm import EMDMGenerator, EMDMSchedule, guided_x0  # noqa: E402
@@ -53,11 +54,9 @@ def chain_from(generator: EMDMGenerator, schedule: EMDMSchedule, x_k: torch.Tens
 
 
 def crop_jitter(joints: np.ndarray, lengths: np.ndarray) -> float:
-    """Mean over crops of the mean length (m per frame squared) of the joints' second difference over
-    time, each crop (B, T, J, 3) read up to its own length (crops of fewer than 3 frames are skipped)."""
-    per_crop = [np.linalg.norm(np.diff(j[:n], 2, axis=0), axis=-1).mean()
-                for j, n in zip(joints, lengths, strict=True) if n >= 3]
-    return float(np.mean(per_crop))
+    """Mean over crops (B, T, J, 3) of :func:`contrasts.jitter` (m per frame squared), each crop read up to
+    its own length (crops of fewer than 3 frames are skipped)."""
+    return float(np.mean([jitter(j[:n]) for j, n in zip(joints, lengths, strict=True) if n >= 3]))
 
 
 def main() -> None:
