@@ -44,7 +44,7 @@ ACTION_KEYS = ("init_from",)
 #: Keys of ``train_emdm.model``: the network sizes (the rest of :class:`EMDMConfig` comes from the store
 #: and the training keys above).
 MODEL_KEYS = ("width", "layers", "heads", "ff_dim", "dropout", "activation", "norm_first", "z_dim", "mapping_layers",
-              "d_width", "d_layers", "d_heads", "d_ff_dim", "d_time_dim", "patch_frames", "d_condition",
+              "d_width", "d_layers", "d_heads", "d_ff_dim", "d_time_dim", "patch_frames", "overlap_out", "d_condition",
               "input_skip", "skip_kernel", "word_tokens", "text_norm")
 #: Keys that decide the networks' weight shapes, which a warm start needs equal: every model key but the
 #: two that shape no weight (``dropout``, and ``text_norm``, a fixed standardisation of the embedding).

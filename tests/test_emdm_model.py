@@ -29,7 +29,7 @@ from models.emdm import (
     r1_penalty,
     sample_emdm,
 )
-from models.patches import from_patches, to_patches
+from models.patches import from_patches, from_patches_overlapped, overlap_window, to_patches
 from models.transformer import lengths_to_mask
 
 pytestmark = pytest.mark.usefixtures("one_thread")  # tiny networks (tests/conftest.py)
@@ -243,9 +243,9 @@ def test_geometric_loss_zero_when_equal_positive_otherwise_and_ignores_padding(r
 # --------------------------------------------------------------------------------------------------
 
 
-@pytest.mark.parametrize("patch", [1, 4])
-def test_generator_ignores_padding_and_zeroes_it(patch: int) -> None:
-    gen, _ = _nets(patch_frames=patch)
+@pytest.mark.parametrize(("patch", "overlap"), [(1, False), (4, False), (4, True)])
+def test_generator_ignores_padding_and_zeroes_it(patch: int, overlap: bool) -> None:
+    gen, _ = _nets(patch_frames=patch, overlap_out=overlap)
     gen.eval()
     g = _gen(5)
     x, z, cond = torch.randn(2, 6, D, generator=g), torch.randn(2, 4, generator=g), torch.randn(2, E, generator=g)
@@ -387,6 +387,27 @@ def test_patches_round_trip_and_validity() -> None:
     assert torch.equal(back[1, 5:], torch.zeros(2, 3))
     assert torch.equal(to_patches(x, torch.tensor([[True] * 7, [True] * 3 + [False] * 4]), 4)[1][1],
                        torch.tensor([True, False]))
+
+
+def test_overlapped_patches_blend_neighbours_and_ignore_invalid_tokens() -> None:
+    torch.testing.assert_close(overlap_window(4), torch.tensor([1, 3, 5, 7, 7, 5, 3, 1]) / 8)
+    valid = torch.ones(1, 3, dtype=torch.bool)
+    ones = from_patches_overlapped(torch.ones(1, 3, 16), valid, 12, 4)  # 2 channels
+    torch.testing.assert_close(ones, torch.ones(1, 12, 2))
+    # token m writes m everywhere: frames hold their own token's value at its centre and ramp by 1/4
+    # per frame across each boundary (plain patches would step by 1 there)
+    steps = torch.arange(3.0).repeat_interleave(8).reshape(1, 3, 8)
+    frames = from_patches_overlapped(steps, valid, 12, 4)[0, :, 0]
+    torch.testing.assert_close(frames, torch.tensor([0, 0, 1 / 8, 3 / 8, 5 / 8, 7 / 8, 9 / 8, 11 / 8, 13 / 8, 15 / 8,
+                                                     2, 2]))
+    # an invalid token writes nothing: the frames its window reaches are the valid neighbour's own values
+    last_invalid = from_patches_overlapped(steps, torch.tensor([[True, True, False]]), 12, 4)[0, :, 0]
+    torch.testing.assert_close(last_invalid[:6], frames[:6])
+    torch.testing.assert_close(last_invalid[6:8], torch.ones(2))
+    with pytest.raises(ValueError, match="even"):
+        from_patches_overlapped(torch.ones(1, 2, 6), torch.ones(1, 2, dtype=torch.bool), 6, 3)
+    with pytest.raises(ValueError, match="overlap_out needs an even"):
+        EMDMConfig(patch_frames=3, overlap_out=True)
 
 
 def test_condition_dropout_rate_and_null_condition() -> None:
