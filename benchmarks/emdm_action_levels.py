@@ -8,9 +8,11 @@ t = k-1..0 a fresh z, the guided x0 (``sample.emdm_action_guidance``) and the po
 step returning x0 itself, as :func:`models.emdm.sample_emdm` does from k = T. The table gives the
 action recogniser's accuracy on the result, its feature MSE to the real crops (normalised) and its
 jitter (the mean length of the joints' second difference over time, m per frame squared, over each
-crop's own frames), and, for the lowest levels, the accuracy and jitter of the noisy x_k itself and of
-the generator's input skip alone (what G adds on top of it). k = T is the evaluation's sampling; k = 0
-is the real crops.
+crop's own frames) with its seam ratio (with G's frame patches of P frames, the mean acceleration
+centred on the two frames either side of a patch boundary over that centred on the frames inside a
+patch; 1 when a boundary is not special), and, for the lowest levels, the accuracy and jitter of the
+noisy x_k itself and of the generator's input skip alone (what G adds on top of it). k = T is the
+evaluation's sampling; k = 0 is the real crops.
 ``--raw``: the raw weights instead of the EMA.
 """
 
@@ -59,6 +61,19 @@ def crop_jitter(joints: np.ndarray, lengths: np.ndarray) -> float:
     return float(np.mean([jitter(j[:n]) for j, n in zip(joints, lengths, strict=True) if n >= 3]))
 
 
+def seam_ratio(joints: np.ndarray, lengths: np.ndarray, patch: int) -> float:
+    """Over crops (B, T, J, 3) read to their own lengths: the mean second-difference length centred on frames
+    n with n mod P in {P - 1, 0} (either side of a patch boundary) over that on the other frames (P > 2)."""
+    seam, inside = [], []
+    for j, n in zip(joints, lengths, strict=True):
+        acc = np.linalg.norm(np.diff(j[:n], 2, axis=0), axis=-1).mean(-1)  # centred on frames 1 .. n - 2
+        phase = np.arange(1, n - 1) % patch
+        at_seam = (phase == 0) | (phase == patch - 1)
+        seam.append(acc[at_seam])
+        inside.append(acc[~at_seam])
+    return float(np.concatenate(seam).mean() / np.concatenate(inside).mean())
+
+
 def main() -> None:
     torch.set_num_threads(2)
     generator, schedule, config, params = load_from_command_line(__doc__, ACTION_STAGE)
@@ -82,14 +97,22 @@ def main() -> None:
         normalised = torch.as_tensor(renormalise(x.numpy(), mean, std, r_mean, r_std))
         return crop_jitter(recogniser.joints(normalised).numpy(), draw.lengths)
 
+    patch = generator.config.patch_frames
+
+    def rough(x: torch.Tensor) -> str:
+        normalised = torch.as_tensor(renormalise(x.numpy(), mean, std, r_mean, r_std))
+        joints = recogniser.joints(normalised).numpy()
+        ratio = f"{seam_ratio(joints, draw.lengths, patch):.2f}" if patch > 2 else "–"
+        return f"{crop_jitter(joints, draw.lengths):.4f} | {ratio}"
+
     def mse(x: torch.Tensor) -> float:
         return float(((x - x0) ** 2 * valid).sum() / (valid.sum() * x0.shape[-1]))
 
     rng = torch.Generator().manual_seed(0)
     print(f"{len(draw.lengths)} labelled test crops, guidance {guidance}\n")
-    print("| start level k | alpha_bar_k | accuracy ↑ | feature MSE ↓ | jitter (m/frame²) | x_k alone: accuracy, "
-          "jitter | input skip alone: accuracy, jitter |")
-    print("|---|---|---|---|---|---|---|")
+    print("| start level k | alpha_bar_k | accuracy ↑ | feature MSE ↓ | jitter (m/frame²) | seam ratio | x_k alone: "
+          "accuracy, jitter | input skip alone: accuracy, jitter |")
+    print("|---|---|---|---|---|---|---|---|")
     with torch.inference_mode():
         for k in range(schedule.num_steps + 1):
             x_k = torch.where(valid, schedule.q_sample(x0, k, torch.randn(x0.shape, generator=rng)), 0.0) if k else x0
@@ -102,7 +125,7 @@ def main() -> None:
                     skipped = torch.where(valid, generator.skipped(x_k, steps, valid[..., 0]), 0.0)
                     skip = f"{accuracy(skipped):.3f}, {jitter(skipped):.4f}"
             ab = float(schedule.alphas_cumprod[k])
-            print(f"| {k} | {ab:.4f} | {accuracy(out):.3f} | {mse(out):.3f} | {jitter(out):.4f} | {alone} | {skip} |",
+            print(f"| {k} | {ab:.4f} | {accuracy(out):.3f} | {mse(out):.3f} | {rough(out)} | {alone} | {skip} |",
                   flush=True)
 
 

@@ -49,3 +49,14 @@ def test_crop_jitter_is_the_second_difference_length_over_each_crops_own_frames(
     joints[1, 4:] = 99.0  # past the crop's length: never read
     assert np.isclose(BENCH.crop_jitter(joints, np.array([6, 4])), 0.03)
     assert BENCH.crop_jitter(np.zeros((1, 5, 2, 3)), np.array([5])) == 0.0
+
+
+def test_seam_ratio_compares_acceleration_at_patch_boundaries_with_inside() -> None:
+    t = np.arange(13.0)
+    smooth = np.zeros((1, 13, 1, 3))
+    smooth[0, :, 0, 0] = 0.5 * 0.02 * t**2  # the same acceleration, 0.02, on every frame
+    assert np.isclose(BENCH.seam_ratio(smooth, np.array([13]), 4), 1.0)
+    stepped = smooth.copy()
+    stepped[0, :, 0, 1] = t // 4  # a step of 1 at each boundary: acceleration 1 on the frames either side of it
+    padded = np.concatenate([stepped, np.full((1, 3, 1, 3), 99.0)], 1)  # past the crop's length: never read
+    assert np.isclose(BENCH.seam_ratio(padded, np.array([13]), 4), np.hypot(1.0, 0.02) / 0.02)
