@@ -133,7 +133,9 @@ Choices (each deliberate; "code" = the released MotionDiffuse code):
     ``Linear(h -> P D)`` out, the positional table over ceil(max_len / P) tokens) through
     :mod:`models.patches`, as EMDM's item 9, so attention, the FFNs and their temporal kernel run on
     N / P tokens. The input skip still filters x_t frame by frame. A token is valid when its first
-    frame is; the valid frames' outputs do not depend on the amount of padding.
+    frame is; the valid frames' outputs do not depend on the amount of padding. ``overlap_out`` (ours;
+    P even): the output layer writes 2P frames per token, tapered and added to the neighbours'
+    (:func:`models.patches.from_patches_overlapped`, as EMDM's item 9), so no step sits at a boundary.
 """
 
 from __future__ import annotations
@@ -159,7 +161,7 @@ from models.diffusion import (
     sample_timesteps,
     wiener_taps,
 )
-from models.patches import from_patches, to_patches
+from models.patches import from_patches, from_patches_overlapped, to_patches
 from models.transformer import TransformerLayer, eval_mode, lengths_to_mask, timestep_embedding
 
 AttentionKind = Literal["linear", "softmax"]
@@ -189,7 +191,7 @@ class MotionDiffuseConfig:
     prediction (module docstring item 11; the code: off); ``skip_kernel`` (odd; 1: that multiple)
     widens it to a fixed per-timestep Wiener filter over frames. ``temporal_kernel``: frames of the depthwise
     convolution in every FFN (item 12; 0 = none, the code). ``patch_frames``: frames per token of the motion
-    branch (item 14; 1, the code).
+    branch (item 14; 1, the code); ``overlap_out``: overlapping, tapered output patches (item 14; P even).
     """
 
     feature_dim: int = 263
@@ -213,6 +215,7 @@ class MotionDiffuseConfig:
     skip_kernel: int = 1
     temporal_kernel: int = 0
     patch_frames: int = 1
+    overlap_out: bool = False
 
     def __post_init__(self) -> None:
         for name in ("feature_dim", "text_dim", "width", "layers", "heads", "ff_dim", "text_heads", "text_ff_dim",
@@ -228,6 +231,8 @@ class MotionDiffuseConfig:
         if (isinstance(self.skip_kernel, bool) or not isinstance(self.skip_kernel, int) or self.skip_kernel < 1
                 or self.skip_kernel % 2 == 0):
             raise ValueError(f"skip_kernel must be an odd integer >= 1, got {self.skip_kernel!r}")
+        if self.overlap_out and self.patch_frames % 2:
+            raise ValueError(f"overlap_out needs an even patch_frames, got {self.patch_frames}")
         if self.skip_kernel > 1 and not self.input_skip:
             raise ValueError(f"skip_kernel {self.skip_kernel} needs input_skip: true")
         if self.width % self.heads:
@@ -464,7 +469,7 @@ class MotionDiffuse(nn.Module):
         self.frame_in = nn.Linear(p * cfg.feature_dim, h)
         self.positions = nn.Parameter(torch.randn(-(-cfg.max_len // p), h))
         self.layers = nn.ModuleList(DecoderLayer(cfg) for _ in range(cfg.layers))
-        self.frame_out = _zero(nn.Linear(h, p * cfg.feature_dim))
+        self.frame_out = _zero(nn.Linear(h, (2 if cfg.overlap_out else 1) * p * cfg.feature_dim))
         scalar = (1.0 - cfg.make_schedule().alphas_cumprod).sqrt().float()
         self.skip = nn.Parameter(scalar) if cfg.input_skip and cfg.skip_kernel == 1 else None
         taps = None
@@ -525,7 +530,11 @@ class MotionDiffuse(nn.Module):
         tokens = text.tokens.to(dtype)
         for layer in self.layers:
             h = layer(h, emb, token_valid, tokens, text.mask)
-        out = from_patches(self.frame_out(h), n, self.config.patch_frames)
+        out = self.frame_out(h)
+        if self.config.overlap_out:
+            out = from_patches_overlapped(out, token_valid, n, self.config.patch_frames)
+        else:
+            out = from_patches(out, n, self.config.patch_frames)
         if self.skip is not None:
             out = out + self.skip[steps].to(dtype)[:, None, None] * x_t.to(dtype)
         if self.skip_taps is not None:

@@ -46,7 +46,8 @@ SECTION_KEYS = ("lr", "ema_decay", "p_uncond", "crop_frames", "num_train_timeste
 #: Keys of ``train_motiondiffuse.model``: the network sizes (``feature_dim``/``text_dim`` come from the store,
 #: the schedule from the section's keys above).
 MODEL_KEYS = ("width", "layers", "heads", "ff_dim", "dropout", "text_layers", "text_heads", "text_ff_dim",
-              "time_embed_mult", "max_len", "attention", "input_skip", "skip_kernel", "temporal_kernel", "patch_frames")
+              "time_embed_mult", "max_len", "attention", "input_skip", "skip_kernel", "temporal_kernel", "patch_frames",
+              "overlap_out")
 
 
 def dataset(config: dict) -> MotionTextDataset:
@@ -109,8 +110,11 @@ def check_section(cfg: dict[str, Any]) -> None:
         check_number(model, key, f"{SECTION}.model", low=1, integer=True)
     check_number(model, "text_layers", f"{SECTION}.model", low=0, integer=True)
     check_number(model, "dropout", f"{SECTION}.model", low=0.0, high=1.0, high_open=True)
-    if not isinstance(model["input_skip"], bool):
-        raise ValueError(f"{SECTION}.model.input_skip: expected true or false, got {model['input_skip']!r}")
+    for key in ("input_skip", "overlap_out"):
+        if not isinstance(model[key], bool):
+            raise ValueError(f"{SECTION}.model.{key}: expected true or false, got {model[key]!r}")
+    if model["overlap_out"] and model["patch_frames"] % 2:
+        raise ValueError(f"{SECTION}.model.overlap_out: needs an even patch_frames, got {model['patch_frames']}")
     check_number(model, "skip_kernel", f"{SECTION}.model", low=1, integer=True)
     if model["skip_kernel"] % 2 == 0 or (model["skip_kernel"] > 1 and not model["input_skip"]):
         raise ValueError(f"{SECTION}.model.skip_kernel: expected 1, or an odd number with input_skip true, got "

@@ -140,11 +140,12 @@ def test_attention_block_valid_outputs_ignore_padded_frames(kind: str) -> None:
     torch.testing.assert_close(a[1], b[1], rtol=0, atol=0)
 
 
-@pytest.mark.parametrize(("attention", "kernel", "patch"),
-                         [("linear", 0, 1), ("softmax", 0, 1), ("linear", 3, 1), ("linear", 3, 4)])
-def test_model_ignores_padding_and_amount_of_padding(attention: str, kernel: int, patch: int) -> None:
+@pytest.mark.parametrize(("attention", "kernel", "patch", "overlap"),
+                         [("linear", 0, 1, False), ("softmax", 0, 1, False), ("linear", 3, 1, False),
+                          ("linear", 3, 4, False), ("linear", 3, 4, True)])
+def test_model_ignores_padding_and_amount_of_padding(attention: str, kernel: int, patch: int, overlap: bool) -> None:
     """Lengths 6 and 10 are no multiples of the patch: the token of frames 4-7 is half padding in sample 0."""
-    model = _model(attention=attention, temporal_kernel=kernel, patch_frames=patch)
+    model = _model(attention=attention, temporal_kernel=kernel, patch_frames=patch, overlap_out=overlap)
     ws, wm = _text()
     x, t, lengths = torch.randn(2, 10, D, generator=_gen(7)), torch.tensor([3, 40]), torch.tensor([6, 10])
     x2 = x.clone()
@@ -518,6 +519,7 @@ def test_time_varied_validation_names_the_segment() -> None:
         ({"temporal_kernel": 4}, "temporal_kernel"),
         ({"temporal_kernel": -1}, "temporal_kernel"),
         ({"patch_frames": 0}, "patch_frames"),
+        ({"patch_frames": 3, "overlap_out": True}, "overlap_out"),
     ],
 )
 def test_config_validation_names_the_field(overrides: dict[str, object], field: str) -> None:

@@ -46,7 +46,7 @@ FIXTURES = Path(__file__).parent / "fixtures" / "humanml3d"
 D, E = 263, 8
 TINY_MODEL = {"width": 16, "layers": 1, "heads": 2, "ff_dim": 32, "dropout": 0.0, "text_layers": 1, "text_heads": 2,
               "text_ff_dim": 32, "time_embed_mult": 2, "max_len": 64, "attention": "linear", "input_skip": False,
-              "skip_kernel": 1, "temporal_kernel": 0, "patch_frames": 1}
+              "skip_kernel": 1, "temporal_kernel": 0, "patch_frames": 1, "overlap_out": False}
 LOOP = {"seed": 0, "batch_size": 8, "max_steps": 6, "grad_clip": 0.5, "lr_schedule": "constant", "warmup_steps": 0,
         "min_lr_ratio": 0.0, "log_every": 3, "num_data_workers": 0, "length_buckets": 0}
 
@@ -61,7 +61,7 @@ def section(**overrides: Any) -> dict[str, Any]:
 def params(small_store) -> dict[str, Any]:
     params = copy.deepcopy(small_store)
     params["train_motiondiffuse"] = section(model=TINY_MODEL | {"input_skip": True, "skip_kernel": 3,
-                                                                "patch_frames": 2})
+                                                                "patch_frames": 2, "overlap_out": True})
     params["sample"]["motiondiffuse_guidance"] = 2.0
     params["sample"]["motiondiffuse_ddpm_items"] = 32
     params["sample"]["motiondiffuse_ddpm_replications"] = 1
@@ -91,6 +91,8 @@ def params(small_store) -> dict[str, Any]:
     ({"model": TINY_MODEL | {"input_skip": True, "skip_kernel": 4}}, "train_motiondiffuse.model.skip_kernel"),
     ({"model": TINY_MODEL | {"skip_kernel": 3}}, "train_motiondiffuse.model.skip_kernel"),
     ({"model": TINY_MODEL | {"patch_frames": 0}}, "train_motiondiffuse.model.patch_frames"),
+    ({"model": TINY_MODEL | {"patch_frames": 3, "overlap_out": True}}, "train_motiondiffuse.model.overlap_out"),
+    ({"model": TINY_MODEL | {"overlap_out": "yes"}}, "train_motiondiffuse.model.overlap_out"),
     ({"model": TINY_MODEL | {"feature_dim": 10}}, "train_motiondiffuse.model: unknown key"),
     ({"model": {k: v for k, v in TINY_MODEL.items() if k != "width"}}, "train_motiondiffuse.model: .*missing key"),
     ({"lr_g": 1e-4}, "train_motiondiffuse: unknown key"),
