@@ -45,7 +45,7 @@ pytestmark = pytest.mark.usefixtures("one_thread")  # tiny networks (tests/conft
 FIXTURES = Path(__file__).parent / "fixtures" / "humanml3d"
 TINY_MODEL = {"width": 16, "layers": 1, "heads": 2, "ff_dim": 32, "dropout": 0.0, "activation": "selu",
               "norm_first": False, "z_dim": 4, "mapping_layers": 2, "d_width": 16, "d_layers": 1, "d_heads": 2,
-              "d_ff_dim": 16, "d_time_dim": 8, "patch_frames": 1,
+              "d_ff_dim": 16, "d_time_dim": 8, "patch_frames": 1, "overlap_out": False,
               "d_condition": True, "input_skip": False, "skip_kernel": 1, "word_tokens": False,
               "text_norm": False}
 LOOP = {"seed": 0, "batch_size": 8, "max_steps": 6, "grad_clip": 1.0, "lr_schedule": "constant", "warmup_steps": 0,
@@ -77,7 +77,9 @@ def emdm_section(**overrides: Any) -> dict[str, Any]:
 @pytest.fixture(scope="module")
 def params(small_store) -> dict[str, Any]:
     params = copy.deepcopy(small_store)
-    params["train_emdm"] = emdm_section(model=TINY_MODEL | {"word_tokens": True})  # the runner serves word tokens
+    # the runner serves word tokens; G writes overlapping patches of 2 frames, as the pipeline's of 4
+    params["train_emdm"] = emdm_section(model=TINY_MODEL | {"word_tokens": True, "patch_frames": 2,
+                                                           "overlap_out": True})
     params["sample"]["emdm_guidance"] = 2.5
     params["ray"].update(num_workers=1, cpus_per_worker=1, checkpoint_every=3, max_failures=0)
     return params
@@ -175,6 +177,9 @@ def test_action_condition_trains_on_labels_with_r_one() -> None:
     torch.testing.assert_close(out["loss"], out["g_adv"] + out["geo"])  # R = 1
     with pytest.raises(ValueError, match=r"train_emdm_action\.model: condition='action' needs num_actions"):
         emdm_training.model_config(section, 263, 8, num_actions=0, section="train_emdm_action")
+    odd = emdm_section(model=TINY_MODEL | {"patch_frames": 3, "overlap_out": True})
+    with pytest.raises(ValueError, match=r"train_emdm\.model: overlap_out needs an even patch_frames, got 3"):
+        emdm_training.model_config(odd, 263, 8)
 
 
 def test_action_stage_reads_the_labelled_classes_of_the_store(params) -> None:
