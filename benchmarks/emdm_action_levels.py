@@ -93,17 +93,19 @@ def main() -> None:
         _, logits = recognise(recogniser, renormalise(x.numpy(), mean, std, r_mean, r_std), draw.lengths)
         return float((logits.argmax(-1) == draw.labels).mean())
 
+    def joints(x: torch.Tensor) -> np.ndarray:
+        return recogniser.joints(torch.as_tensor(renormalise(x.numpy(), mean, std, r_mean, r_std))).numpy()
+
     def jitter(x: torch.Tensor) -> float:
-        normalised = torch.as_tensor(renormalise(x.numpy(), mean, std, r_mean, r_std))
-        return crop_jitter(recogniser.joints(normalised).numpy(), draw.lengths)
+        return crop_jitter(joints(x), draw.lengths)
 
     patch = generator.config.patch_frames
 
     def rough(x: torch.Tensor) -> str:
-        normalised = torch.as_tensor(renormalise(x.numpy(), mean, std, r_mean, r_std))
-        joints = recogniser.joints(normalised).numpy()
-        ratio = f"{seam_ratio(joints, draw.lengths, patch):.2f}" if patch > 2 else "–"
-        return f"{crop_jitter(joints, draw.lengths):.4f} | {ratio}"
+        """Jitter and seam ratio, one joint recovery."""
+        joints_x = joints(x)
+        ratio = f"{seam_ratio(joints_x, draw.lengths, patch):.2f}" if patch > 2 else "–"
+        return f"{crop_jitter(joints_x, draw.lengths):.4f} | {ratio}"
 
     def mse(x: torch.Tensor) -> float:
         return float(((x - x0) ** 2 * valid).sum() / (valid.sum() * x0.shape[-1]))

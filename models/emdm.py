@@ -138,7 +138,7 @@ from torch.nn.attention import SDPBackend, sdpa_kernel
 from data.features import feature_groups, recover_from_ric
 from data.skeleton import SKELETONS
 from models.diffusion import cfg_combine, condition_dropout, sample_timesteps
-from models.patches import from_patches, from_patches_overlapped, to_patches
+from models.patches import from_output_patches, output_width, to_patches
 from models.transformer import PositionalEncoding, TransformerLayer, eval_mode, lengths_to_mask, timestep_embedding
 
 Condition = Literal["text", "action"]
@@ -474,7 +474,7 @@ class EMDMGenerator(nn.Module):
                              if slots else None)
         self.register_buffer("label_word_mask", torch.zeros(cfg.num_actions, cfg.label_words, dtype=torch.bool)
                              if slots else None)
-        self.frame_out = nn.Linear(h, (2 if cfg.overlap_out else 1) * cfg.patch_frames * cfg.feature_dim)
+        self.frame_out = nn.Linear(h, output_width(cfg.patch_frames, cfg.feature_dim, cfg.overlap_out))
         self.skip = None
         if cfg.input_skip:
             scalar = cfg.make_schedule().alphas_cumprod[1:].sqrt().float()
@@ -547,11 +547,8 @@ class EMDMGenerator(nn.Module):
         padding = torch.cat([valid.new_zeros(b, _PREFIX_G), ~token_valid], dim=1)
         for layer in self.layers:
             tokens = layer(tokens, padding, *conditioning.memory)
-        out = self.frame_out(tokens[:, _PREFIX_G:])
-        if self.config.overlap_out:
-            out = from_patches_overlapped(out, token_valid, n, self.config.patch_frames)
-        else:
-            out = from_patches(out, n, self.config.patch_frames)
+        out = from_output_patches(self.frame_out(tokens[:, _PREFIX_G:]), token_valid, n, self.config.patch_frames,
+                                  self.config.overlap_out)
         if self.skip is not None:
             out = out + self.skipped(x_next, steps, valid).to(out.dtype)
         return torch.where(valid[..., None], out, 0.0)

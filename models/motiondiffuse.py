@@ -161,7 +161,7 @@ from models.diffusion import (
     sample_timesteps,
     wiener_taps,
 )
-from models.patches import from_patches, from_patches_overlapped, to_patches
+from models.patches import from_output_patches, output_width, to_patches
 from models.transformer import TransformerLayer, eval_mode, lengths_to_mask, timestep_embedding
 
 AttentionKind = Literal["linear", "softmax"]
@@ -469,7 +469,7 @@ class MotionDiffuse(nn.Module):
         self.frame_in = nn.Linear(p * cfg.feature_dim, h)
         self.positions = nn.Parameter(torch.randn(-(-cfg.max_len // p), h))
         self.layers = nn.ModuleList(DecoderLayer(cfg) for _ in range(cfg.layers))
-        self.frame_out = _zero(nn.Linear(h, (2 if cfg.overlap_out else 1) * p * cfg.feature_dim))
+        self.frame_out = _zero(nn.Linear(h, output_width(p, cfg.feature_dim, cfg.overlap_out)))
         scalar = (1.0 - cfg.make_schedule().alphas_cumprod).sqrt().float()
         self.skip = nn.Parameter(scalar) if cfg.input_skip and cfg.skip_kernel == 1 else None
         taps = None
@@ -530,11 +530,7 @@ class MotionDiffuse(nn.Module):
         tokens = text.tokens.to(dtype)
         for layer in self.layers:
             h = layer(h, emb, token_valid, tokens, text.mask)
-        out = self.frame_out(h)
-        if self.config.overlap_out:
-            out = from_patches_overlapped(out, token_valid, n, self.config.patch_frames)
-        else:
-            out = from_patches(out, n, self.config.patch_frames)
+        out = from_output_patches(self.frame_out(h), token_valid, n, self.config.patch_frames, self.config.overlap_out)
         if self.skip is not None:
             out = out + self.skip[steps].to(dtype)[:, None, None] * x_t.to(dtype)
         if self.skip_taps is not None:

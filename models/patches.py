@@ -53,7 +53,7 @@ def from_patches_overlapped(x: Tensor, token_valid: Tensor, num_frames: int, pat
         raise ValueError(f"overlapping patches need an even patch_frames, got {patch}")
     b, m, twice = x.shape
     c = twice // (2 * patch)
-    w = overlap_window(patch).to(x.dtype)
+    w = overlap_window(patch).to(x)
     keep = token_valid.to(x.dtype)[:, :, None, None]
     tapered = x.reshape(b, m, 2 * patch, c) * w[:, None] * keep
     weight = w[None, None, :, None] * keep  # (B, M, 2P, 1)
@@ -66,3 +66,16 @@ def from_patches_overlapped(x: Tensor, token_valid: Tensor, num_frames: int, pat
     half = patch // 2
     total = overlap_add(weight)[:, half:half + num_frames]
     return overlap_add(tapered)[:, half:half + num_frames] / total.clamp_min(1e-6)
+
+
+def output_width(patch: int, channels: int, overlapped: bool) -> int:
+    """Values per token of an output layer writing P frames of C channels, 2P with ``overlapped``."""
+    return (2 if overlapped else 1) * patch * channels
+
+
+def from_output_patches(x: Tensor, token_valid: Tensor, num_frames: int, patch: int, overlapped: bool) -> Tensor:
+    """An output layer's tokens (B, M, :func:`output_width`) -> frames (B, num_frames, C):
+    :func:`from_patches_overlapped` with ``overlapped``, else :func:`from_patches`."""
+    if overlapped:
+        return from_patches_overlapped(x, token_valid, num_frames, patch)
+    return from_patches(x, num_frames, patch)
