@@ -6,7 +6,10 @@
   conditional passes batched into one forward.
 - :class:`EMDMActionRow`: the same sampler conditioned on action labels, behind
   :class:`pipelines.action_evaluation.ActionGenerator` (``train_emdm_action``'s generator).
-- :func:`emdm_rows`, :func:`emdm_generator`, :func:`emdm_action_rows`: the registry's entries
+- :class:`EMDMActionPrompts`: that row behind the text interface for ``stages.generate --model
+  emdm-action``, each prompt an action label.
+- :func:`emdm_rows`, :func:`emdm_generator`, :func:`emdm_action_rows`, :func:`emdm_action_generator`:
+  the registry's entries
   (``pipelines/registry.py``); the guidance scales are ``sample.emdm_guidance`` for text and
   ``sample.emdm_action_guidance`` for action labels (EMDM's setting: 2.5 for both).
 
@@ -26,7 +29,7 @@ import torch
 from data.motion_dataset import pad_tokens
 from models.emdm import EMDMConfig, EMDMGenerator, EMDMSchedule, sample_emdm
 from models.generator import Generator, TextBatch
-from pipelines.checkpoint import load_final_model
+from pipelines.checkpoint import load_final_model, skipped
 from pipelines.length_batches import sample_by_length
 
 if TYPE_CHECKING:  # annotations only: the registry imports this module, not the reverse
@@ -107,6 +110,32 @@ class EMDMActionRow:
         return out.float().cpu().numpy()
 
 
+class EMDMActionPrompts:
+    """``stages.generate --model emdm-action``: an :class:`EMDMActionRow` behind the text interface. Each
+    prompt's text is an action label, one of the row's classes (``train_emdm_action``'s, e.g. ``walk``),
+    matched after trimming and lower-casing; the text embeddings are not used."""
+
+    stochastic = True
+
+    def __init__(self, row: EMDMActionRow) -> None:
+        self.row, self.name, self.nfe = row, row.name, row.nfe
+
+    def label_ids(self, labels: Sequence[str]) -> np.ndarray:
+        """Class ids of ``labels``; ValueError naming the first unknown label and listing the classes."""
+        index = {label.lower(): i for i, label in enumerate(self.row.classes)}
+        ids = []
+        for label in labels:
+            key = label.strip().lower()
+            if key not in index:
+                raise ValueError(f"--model emdm-action: {label!r} is not an action label; the model knows "
+                                 f"{', '.join(self.row.classes)}")
+            ids.append(index[key])
+        return np.asarray(ids, np.int64)
+
+    def sample(self, text: TextBatch, lengths: np.ndarray, seed: int) -> np.ndarray:
+        return self.row.sample_actions(self.label_ids(text.texts), lengths, seed)
+
+
 def emdm_action_rows(ctx: EvalContext) -> list[EMDMActionRow]:
     """``EMDM-action``: the action-conditioned generator of ``train_emdm_action`` with
     ``sample.emdm_action_guidance``."""
@@ -136,3 +165,19 @@ def emdm_generator(ctx: EvalContext, options: GenerateOptions) -> Generator:
         raise ValueError(f"--steps {options.steps}: EMDM samples with the {trained} steps it was trained with "
                          "(train_emdm.num_steps)")
     return row
+
+
+def emdm_action_generator(ctx: EvalContext, options: GenerateOptions) -> EMDMActionPrompts:
+    """``stages.generate --model emdm-action``: the action model with its trained T steps (``--steps`` must
+    equal it) and ``sample.emdm_action_guidance`` unless told otherwise; ValueError with the stage's reason
+    when the dataset had no action labels to train it on."""
+    reason = skipped(ctx.artifacts / ACTION_STAGE)
+    if reason is not None:
+        raise ValueError(f"--model emdm-action: {ACTION_STAGE} trained nothing: {reason}")
+    generator, schedule, config = load_emdm(ctx.trained(ACTION_STAGE))
+    guidance = ctx.params["sample"]["emdm_action_guidance"] if options.guidance is None else options.guidance
+    if options.steps is not None and options.steps != schedule.num_steps:
+        raise ValueError(f"--steps {options.steps}: EMDM-action samples with the {schedule.num_steps} steps it was "
+                         "trained with (train_emdm_action.num_steps)")
+    return EMDMActionPrompts(EMDMActionRow("EMDM-action", generator, schedule, guidance, config["classes"],
+                                           ctx.params["sample"]["motion_batch"]))

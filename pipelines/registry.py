@@ -109,7 +109,7 @@ FAMILIES: dict[str, ModelFamily] = {family.name: family for family in (
                 params=("sample.emdm_guidance", "sample.motion_batch"), generator="emdm_generator",
                 description="EMDM: a denoising-diffusion GAN in motion space, 10 steps"),
     ModelFamily("emdm-action", "pipelines.emdm_family", "emdm_action_rows", train_stages=("train_emdm_action",),
-                params=("sample.emdm_action_guidance", "sample.motion_batch"),
+                params=("sample.emdm_action_guidance", "sample.motion_batch"), generator="emdm_action_generator",
                 description="EMDM conditioned on action labels: the action-to-motion protocol"),
     ModelFamily("motiondiffuse", "pipelines.motiondiffuse_family", "motiondiffuse_rows",
                 train_stages=("train_motiondiffuse",),

@@ -6,11 +6,14 @@
 
     python -m stages.generate --model motionlcm-control --text "a person walks" \\
         --trajectory circle [--size 1.5] [--refine] --out circle.gif
+    python -m stages.generate --model emdm-action --text wave --text jump --out out/
 
 Prompts. ``--text`` (repeatable) and ``--prompts FILE`` (one prompt per line, ``TEXT`` or
 ``TEXT | LENGTH``; blank lines and lines starting with ``#`` are skipped; a prompt without a
 length gets ``--length``) are generated together: the models and the text encoder are loaded once
-and the prompts sampled in batches of :data:`BATCH` (batch ``i`` with seed ``--seed + i``).
+and the prompts sampled in batches of :data:`BATCH` (batch ``i`` with seed ``--seed + i``). For
+``--model emdm-action`` each prompt is one of ``train_emdm_action``'s action labels (an unknown
+label's error lists them).
 
 Outputs. ``--out`` with a format's extension is one file (one prompt); otherwise it is a
 directory that receives ``NN_<words>.<format>`` per prompt, ``NN`` its position from 00 (the
@@ -219,10 +222,11 @@ def allowed_steps(model: str, params: dict[str, Any]) -> tuple[Callable[[int], b
         return (lambda n: n in LCM_STEPS), f"MotionLCM samples with {', '.join(map(str, sorted(LCM_STEPS)))} steps"
     if model == "motionlcm-control":
         return (lambda n: n == 1), "the ControlNet samples with one MotionLCM step"
-    if model == "emdm":
-        trained = params["train_emdm"]["num_steps"]
-        return (lambda n: n == trained), f"EMDM samples with the {trained} steps it was trained with " \
-                                         "(train_emdm.num_steps)"
+    if model in ("emdm", "emdm-action"):
+        stage, what = ("train_emdm", "EMDM") if model == "emdm" else ("train_emdm_action", "EMDM-action")
+        trained = params[stage]["num_steps"]
+        return (lambda n: n == trained), f"{what} samples with the {trained} steps it was trained with " \
+                                         f"({stage}.num_steps)"
     stage = {"mld": "train_mld", "motiondiffuse": "train_motiondiffuse"}[model]
     total = params[stage]["num_train_timesteps"]
     return (lambda n: 1 <= n <= total), f"1..{total} ({stage}.num_train_timesteps)"
@@ -476,7 +480,8 @@ def build_parser() -> argparse.ArgumentParser:
         prog="python -m stages.generate", description="Text to motion with a trained motionforge model.",
         epilog="key=value arguments override params (e.g. paths.artifacts=/elsewhere/artifacts).")
     parser.add_argument("--model", default="mld", help=f"model family: {', '.join(MODELS)} (default mld)")
-    parser.add_argument("--text", action="append", default=[], help="a prompt (repeatable)")
+    parser.add_argument("--text", action="append", default=[],
+                        help="a prompt (repeatable); for emdm-action an action label, e.g. walk")
     parser.add_argument("--prompts", type=Path, default=None, metavar="FILE",
                         help="a file of prompts, one per line: TEXT or TEXT | LENGTH; blank lines and # comments "
                         "are skipped")

@@ -25,8 +25,10 @@ from pipelines import checkpoint as ckpt
 from pipelines import emdm_training
 from pipelines.action_evaluation import ActionGenerator
 from pipelines.emdm_family import (
+    EMDMActionPrompts,
     EMDMActionRow,
     EMDMGeneratorRow,
+    emdm_action_generator,
     emdm_action_rows,
     emdm_generator,
     emdm_rows,
@@ -218,6 +220,29 @@ def test_action_row_samples_labels_deterministically() -> None:
         EMDMActionRow("EMDM-action", EMDMGenerator(model), model.make_schedule(), 2.5, ["clap", "jump"])
 
 
+def test_generate_s_action_prompts_are_labels_and_sample_as_the_row_does(tmp_path: Path) -> None:
+    """``--model emdm-action``: each prompt's text names a class (trimmed, any case) and samples exactly what
+    the action row samples for that class id; an unknown label's error lists the labels; a dataset without
+    labels gives the stage's reason instead of a missing model."""
+    torch.manual_seed(0)
+    model = EMDMConfig(**emdm_training.model_config(emdm_section(condition="action"), 263, 8, num_actions=3))
+    row = EMDMActionRow("EMDM-action", EMDMGenerator(model), model.make_schedule(), 2.5, ["clap", "jump", "walk"])
+    prompts = EMDMActionPrompts(row)
+    assert isinstance(prompts, Generator) and (prompts.name, prompts.nfe) == ("EMDM-action", 20)
+    text = TextBatch([" Walk", "clap"], np.zeros((2, 8), np.float32), [np.zeros((1, 8), np.float32)] * 2)
+    lengths = np.array([9, 12])
+    np.testing.assert_array_equal(prompts.sample(text, lengths, 3), row.sample_actions(np.array([2, 0]), lengths, 3))
+    unknown = TextBatch(["walk", "a person walks"], text.pooled, text.tokens)
+    with pytest.raises(ValueError, match=r"'a person walks' is not an action label; the model knows clap, jump, walk"):
+        prompts.sample(unknown, lengths, 3)
+
+    (tmp_path / "train_emdm_action").mkdir()
+    (tmp_path / "train_emdm_action" / ckpt.SKIPPED).write_text(json.dumps({"reason": "no actions.txt in the data"}))
+    ctx = EvalContext({"sample": {"emdm_action_guidance": 2.5, "motion_batch": None}}, tmp_path, tmp_path)
+    with pytest.raises(ValueError, match="train_emdm_action trained nothing: no actions.txt in the data"):
+        emdm_action_generator(ctx, GenerateOptions())
+
+
 def test_rows_in_length_batches_are_each_batch_sampled_alone() -> None:
     """``batch`` (both rows): sorted by length, ``batch`` rows at a time with the batch's seed; one batch that
     holds every row is the unbatched call bit for bit."""
@@ -378,6 +403,12 @@ def test_stage_writes_outputs_and_the_row_samples(params, tmp_path: Path) -> Non
     (action_row,) = emdm_action_rows(scaled)
     assert (action_row.guidance, emdm_rows(scaled)[0].guidance) == (4.0, 1.25)
     assert action_row.classes == tuple(config["classes"])
+    # stages.generate --model emdm-action: the same model, labels as prompts, its own steps and guidance
+    prompts = emdm_action_generator(scaled, GenerateOptions())
+    assert prompts.row.guidance == 4.0 and prompts.row.classes == action_row.classes
+    assert emdm_action_generator(scaled, GenerateOptions(guidance=1.0)).nfe == 10
+    with pytest.raises(ValueError, match="EMDM-action samples with the 10 steps"):
+        emdm_action_generator(scaled, GenerateOptions(steps=4))
     for change, message in (({"init_from": "nowhere"}, "nowhere holds no trained EMDM"),
                             ({"model": local["train_emdm"]["model"] | {"ff_dim": 48}}, "ff_dim 32 != 48")):
         bad = local | {"train_emdm_action": action["train_emdm_action"] | change}

@@ -100,7 +100,7 @@ def cases(tmp: Path, store: str, low: int, high: int) -> list[tuple[list[str], s
     prompts.write_text(f"a person walks | {low}\n# a comment\na person jumps | ten\n")
     long = tmp / "long.txt"
     long.write_text(f"a person walks\n\na person jumps | {high + 1}\n")
-    known = "emdm, mld, motiondiffuse, motionlcm, motionlcm-control"
+    known = "emdm, emdm-action, mld, motiondiffuse, motionlcm, motionlcm-control"
     walks = ["--text", "a person walks"]
     return [
         ([*walks, "--steps", "0", "--out", str(tmp / "w.gif")], "--steps 0: must be at least 1"),
@@ -108,6 +108,8 @@ def cases(tmp: Path, store: str, low: int, high: int) -> list[tuple[list[str], s
          "--steps 3: MotionLCM samples with 1, 2, 4 steps"),
         ([*walks, "--model", "emdm", "--steps", "50", "--out", str(tmp / "w.gif")],
          "--steps 50: EMDM samples with the 10 steps it was trained with (train_emdm.num_steps)"),
+        (["--text", "walk", "--model", "emdm-action", "--steps", "4", "--out", str(tmp / "w.gif")],
+         "--steps 4: EMDM-action samples with the 10 steps it was trained with (train_emdm_action.num_steps)"),
         ([*walks, "--length", str(low - 1), "--out", str(tmp / "w.gif")],
          f"--text 'a person walks': length {low - 1} is outside {low}..{high} frames, the lengths of the training "
          f"motions ({store})"),
