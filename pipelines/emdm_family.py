@@ -119,29 +119,30 @@ class EMDMActionPrompts:
 
     def __init__(self, row: EMDMActionRow) -> None:
         self.row, self.name, self.nfe = row, row.name, row.nfe
+        self.index = {label.lower(): i for i, label in enumerate(row.classes)}
 
     def label_ids(self, labels: Sequence[str]) -> np.ndarray:
         """Class ids of ``labels``; ValueError naming the first unknown label and listing the classes."""
-        index = {label.lower(): i for i, label in enumerate(self.row.classes)}
-        ids = []
         for label in labels:
-            key = label.strip().lower()
-            if key not in index:
+            if label.strip().lower() not in self.index:
                 raise ValueError(f"--model emdm-action: {label!r} is not an action label; the model knows "
                                  f"{', '.join(self.row.classes)}")
-            ids.append(index[key])
-        return np.asarray(ids, np.int64)
+        return np.array([self.index[label.strip().lower()] for label in labels], np.int64)
 
     def sample(self, text: TextBatch, lengths: np.ndarray, seed: int) -> np.ndarray:
         return self.row.sample_actions(self.label_ids(text.texts), lengths, seed)
 
 
+def _emdm_action(ctx: EvalContext, guidance: float) -> EMDMActionRow:
+    generator, schedule, config = load_emdm(ctx.trained(ACTION_STAGE))
+    return EMDMActionRow("EMDM-action", generator, schedule, guidance, config["classes"],
+                         ctx.params["sample"]["motion_batch"])
+
+
 def emdm_action_rows(ctx: EvalContext) -> list[EMDMActionRow]:
     """``EMDM-action``: the action-conditioned generator of ``train_emdm_action`` with
     ``sample.emdm_action_guidance``."""
-    generator, schedule, config = load_emdm(ctx.trained(ACTION_STAGE))
-    return [EMDMActionRow("EMDM-action", generator, schedule, ctx.params["sample"]["emdm_action_guidance"],
-                          config["classes"], ctx.params["sample"]["motion_batch"])]
+    return [_emdm_action(ctx, ctx.params["sample"]["emdm_action_guidance"])]
 
 
 def _emdm(ctx: EvalContext, guidance: float) -> EMDMGeneratorRow:
@@ -155,15 +156,19 @@ def emdm_rows(ctx: EvalContext) -> list[Generator]:
     return [_emdm(ctx, ctx.params["sample"]["emdm_guidance"])]
 
 
+def _check_steps(options: GenerateOptions, schedule: EMDMSchedule, model: str, stage: str) -> None:
+    """``--steps`` must be the T steps the model was trained with (``<stage>.num_steps``)."""
+    if options.steps is not None and options.steps != schedule.num_steps:
+        raise ValueError(f"--steps {options.steps}: {model} samples with the {schedule.num_steps} steps it was "
+                         f"trained with ({stage}.num_steps)")
+
+
 def emdm_generator(ctx: EvalContext, options: GenerateOptions) -> Generator:
     """``stages.generate --model emdm``: the trained T steps (``--steps`` must equal it) and the
     configured guidance unless told otherwise."""
     guidance = ctx.params["sample"]["emdm_guidance"] if options.guidance is None else options.guidance
     row = _emdm(ctx, guidance)
-    trained = row.schedule.num_steps
-    if options.steps is not None and options.steps != trained:
-        raise ValueError(f"--steps {options.steps}: EMDM samples with the {trained} steps it was trained with "
-                         "(train_emdm.num_steps)")
+    _check_steps(options, row.schedule, "EMDM", TRAIN_STAGE)
     return row
 
 
@@ -174,10 +179,7 @@ def emdm_action_generator(ctx: EvalContext, options: GenerateOptions) -> EMDMAct
     reason = skipped(ctx.artifacts / ACTION_STAGE)
     if reason is not None:
         raise ValueError(f"--model emdm-action: {ACTION_STAGE} trained nothing: {reason}")
-    generator, schedule, config = load_emdm(ctx.trained(ACTION_STAGE))
     guidance = ctx.params["sample"]["emdm_action_guidance"] if options.guidance is None else options.guidance
-    if options.steps is not None and options.steps != schedule.num_steps:
-        raise ValueError(f"--steps {options.steps}: EMDM-action samples with the {schedule.num_steps} steps it was "
-                         "trained with (train_emdm_action.num_steps)")
-    return EMDMActionPrompts(EMDMActionRow("EMDM-action", generator, schedule, guidance, config["classes"],
-                                           ctx.params["sample"]["motion_batch"]))
+    row = _emdm_action(ctx, guidance)
+    _check_steps(options, row.schedule, "EMDM-action", ACTION_STAGE)
+    return EMDMActionPrompts(row)
