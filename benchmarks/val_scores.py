@@ -1,16 +1,22 @@
 """A trained family's rows scored on the validation split (what sweeps rank by), without the test set.
 
-    python benchmarks/val_scores.py <family> [key=value ...] [--rows NAME] [--rows NAME ...]
+    python benchmarks/val_scores.py <family> [key=value ...] [--rows NAME] [--rows NAME ...] [--draws N]
 
 One replication of the evaluation protocol on the ``val`` split (:func:`pipelines.validation.
 generator_scores`): ``val_FID`` and ``val_R_precision_top3`` per row, with the evaluator of
 ``paths.artifacts``. Overrides pick the trained models, e.g. ``paths.artifacts=/tmp/probe``
 (the evaluator is then read from there too: copy or link ``train_evaluator`` into it).
+
+``--draws N`` repeats it with ``evaluate.seed`` = s, s + 1, ..., s + N - 1 (s: the configured seed) and
+prints each draw, then the mean and its standard error. On a small validation split one draw is
+noisy: compare two settings by their means, and only by differences well above those errors.
 """
 
 from __future__ import annotations
 
 import argparse
+import copy
+import math
 import sys
 import time
 from pathlib import Path
@@ -33,8 +39,23 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser.add_argument("family")
     parser.add_argument("--rows", action="append", default=None, metavar="NAME",
                         help="a row to score, repeatable (default: every generator row)")
+    parser.add_argument("--draws", type=int, default=1, metavar="N",
+                        help="draws with evaluate.seed, seed + 1, ...; prints their mean and standard error")
     parser.add_argument("overrides", nargs="*", help="params overrides, e.g. paths.artifacts=/tmp/probe")
-    return parser.parse_intermixed_args(argv)
+    args = parser.parse_intermixed_args(argv)
+    if args.draws < 1:
+        parser.error(f"--draws must be >= 1, got {args.draws}")
+    return args
+
+
+def mean_and_error(values: list[float]) -> tuple[float, float]:
+    """The mean of ``values`` and its standard error (sample standard deviation / sqrt(n); 0 for one value)."""
+    n = len(values)
+    mean = sum(values) / n
+    if n == 1:
+        return mean, 0.0
+    variance = sum((v - mean) ** 2 for v in values) / (n - 1)
+    return mean, math.sqrt(variance / n)
 
 
 def main() -> None:
@@ -44,11 +65,21 @@ def main() -> None:
     for row in family(args.family).build_rows(ctx):
         if not isinstance(row, Generator) or (args.rows and row.name not in args.rows):
             continue
-        start = time.perf_counter()
-        with torch.inference_mode():
-            scores = generator_scores(params, row)
-        print(f"{row.name}: val FID {scores['val_FID']:.3f}, val R@3 {scores['val_R_precision_top3']:.3f} "
-              f"({time.perf_counter() - start:.0f} s)")
+        fids, r3s = [], []
+        for draw in range(args.draws):
+            seeded = copy.deepcopy(params)
+            seeded["evaluate"]["seed"] = params["evaluate"]["seed"] + draw
+            start = time.perf_counter()
+            with torch.inference_mode():
+                scores = generator_scores(seeded, row)
+            fids.append(scores["val_FID"])
+            r3s.append(scores["val_R_precision_top3"])
+            print(f"{row.name}: val FID {fids[-1]:.3f}, val R@3 {r3s[-1]:.3f} (evaluate.seed "
+                  f"{seeded['evaluate']['seed']}, {time.perf_counter() - start:.0f} s)")
+        if args.draws > 1:
+            (fid, fid_se), (r3, r3_se) = mean_and_error(fids), mean_and_error(r3s)
+            print(f"{row.name}: {args.draws} draws: val FID {fid:.3f} ± {fid_se:.3f}, val R@3 {r3:.3f} ± {r3_se:.3f} "
+                  "(mean ± standard error)")
 
 
 if __name__ == "__main__":
