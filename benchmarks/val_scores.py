@@ -8,15 +8,14 @@ generator_scores`): ``val_FID`` and ``val_R_precision_top3`` per row, with the e
 (the evaluator is then read from there too: copy or link ``train_evaluator`` into it).
 
 ``--draws N`` repeats it with ``evaluate.seed`` = s, s + 1, ..., s + N - 1 (s: the configured seed) and
-prints each draw, then the mean and its standard error. On a small validation split one draw is
-noisy: compare two settings by their means, and only by differences well above those errors.
+prints each draw, then the mean and its 95 % half-width as the evaluation's tables give them
+(:func:`models.metrics.mean_and_ci`). On a small validation split one draw is noisy: compare two
+settings by their means, and only by differences well above those intervals.
 """
 
 from __future__ import annotations
 
 import argparse
-import copy
-import math
 import sys
 import time
 from pathlib import Path
@@ -26,6 +25,7 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from models.generator import Generator  # noqa: E402
+from models.metrics import mean_and_ci  # noqa: E402
 from pipelines.cli import artifacts_dir, repo_path  # noqa: E402
 from pipelines.config import load_params  # noqa: E402
 from pipelines.registry import EvalContext, family  # noqa: E402
@@ -40,7 +40,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser.add_argument("--rows", action="append", default=None, metavar="NAME",
                         help="a row to score, repeatable (default: every generator row)")
     parser.add_argument("--draws", type=int, default=1, metavar="N",
-                        help="draws with evaluate.seed, seed + 1, ...; prints their mean and standard error")
+                        help="draws with evaluate.seed, seed + 1, ...; prints their mean and 95%% half-width")
     parser.add_argument("overrides", nargs="*", help="params overrides, e.g. paths.artifacts=/tmp/probe")
     args = parser.parse_intermixed_args(argv)
     if args.draws < 1:
@@ -48,14 +48,11 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     return args
 
 
-def mean_and_error(values: list[float]) -> tuple[float, float]:
-    """The mean of ``values`` and its standard error (sample standard deviation / sqrt(n); 0 for one value)."""
-    n = len(values)
-    mean = sum(values) / n
-    if n == 1:
-        return mean, 0.0
-    variance = sum((v - mean) ** 2 for v in values) / (n - 1)
-    return mean, math.sqrt(variance / n)
+def summary(name: str, fids: list[float], r3s: list[float]) -> str:
+    """The line that sums up a row's draws: each score's mean and 95 % half-width (:func:`mean_and_ci`)."""
+    (fid, fid_ci), (r3, r3_ci) = mean_and_ci(fids), mean_and_ci(r3s)
+    return (f"{name}: {len(fids)} draws: val FID {fid:.3f} ± {fid_ci:.3f}, val R@3 {r3:.3f} ± {r3_ci:.3f} "
+            "(mean ± 95 % half-width)")
 
 
 def main() -> None:
@@ -67,8 +64,7 @@ def main() -> None:
             continue
         fids, r3s = [], []
         for draw in range(args.draws):
-            seeded = copy.deepcopy(params)
-            seeded["evaluate"]["seed"] = params["evaluate"]["seed"] + draw
+            seeded = params | {"evaluate": params["evaluate"] | {"seed": params["evaluate"]["seed"] + draw}}
             start = time.perf_counter()
             with torch.inference_mode():
                 scores = generator_scores(seeded, row)
@@ -77,9 +73,7 @@ def main() -> None:
             print(f"{row.name}: val FID {fids[-1]:.3f}, val R@3 {r3s[-1]:.3f} (evaluate.seed "
                   f"{seeded['evaluate']['seed']}, {time.perf_counter() - start:.0f} s)")
         if args.draws > 1:
-            (fid, fid_se), (r3, r3_se) = mean_and_error(fids), mean_and_error(r3s)
-            print(f"{row.name}: {args.draws} draws: val FID {fid:.3f} ± {fid_se:.3f}, val R@3 {r3:.3f} ± {r3_se:.3f} "
-                  "(mean ± standard error)")
+            print(summary(row.name, fids, r3s))
 
 
 if __name__ == "__main__":

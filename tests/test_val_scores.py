@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import math
-
 import pytest
 from bench_module import load_benchmark
 
@@ -29,7 +27,7 @@ def test_draws_default_to_one_and_must_be_positive() -> None:
         val_scores.parse_args(["emdm", "--draws", "0"])
 
 
-def test_mean_and_standard_error_of_known_values() -> None:
-    mean, error = val_scores.mean_and_error([1.0, 2.0, 3.0, 6.0])  # sample variance 14 / 3, n = 4
-    assert mean == 3.0 and math.isclose(error, math.sqrt(14 / 3 / 4))
-    assert val_scores.mean_and_error([2.5]) == (2.5, 0.0)
+def test_summary_gives_the_draws_mean_and_95_percent_half_width() -> None:
+    # FID: mean 3, std (ddof 0) sqrt(3.5), half-width 1.96 * sqrt(3.5) / 2 = 1.833; R@3: mean 0.5, std 0.1, 0.098
+    line = val_scores.summary("EMDM-10", [1.0, 2.0, 3.0, 6.0], [0.4, 0.6, 0.4, 0.6])
+    assert line == "EMDM-10: 4 draws: val FID 3.000 ± 1.833, val R@3 0.500 ± 0.098 (mean ± 95 % half-width)"
