@@ -42,6 +42,8 @@ import numpy as np
 SHAPES = ("circle", "line", "zigzag")
 DEFAULT_SIZE = {"circle": 1.0, "line": 3.0, "zigzag": 3.0}  # metres: radius, length, forward length
 MAX_SPEED = 10.0  # m/s, about a sprinter's top speed: a faster path is a mistake (too few frames)
+NPY_MAGIC = b"\x93NUMPY"  # the first bytes of a .npy file
+ZIP_MAGIC = b"PK\x03\x04"  # of an .npz archive (refused below, with its own message)
 
 
 def _circle(s: np.ndarray, radius: float) -> tuple[np.ndarray, np.ndarray]:
@@ -120,6 +122,11 @@ def load_trajectory(path: str | Path, frames: int) -> np.ndarray:
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"trajectory file {path} not found")
+    with path.open("rb") as file:
+        magic = file.read(len(NPY_MAGIC))
+    if not magic.startswith((NPY_MAGIC, ZIP_MAGIC)):  # else numpy reads it as a pickle and says so
+        raise ValueError(f"trajectory file {path} is not a .npy file (no NumPy header): save one (T, 3) array with "
+                         "np.save")
     try:
         array = np.load(path, allow_pickle=False)
     except (OSError, ValueError, EOFError) as err:

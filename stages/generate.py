@@ -23,10 +23,12 @@ global joints (T, J, 3) in metres, ``.bvh`` the skeleton's joint rotations (:mod
 Models are read from ``paths.artifacts`` (``dvc repro`` first).
 
 Everything that can be checked without a model is checked before loading one (one line, exit
-status 1): the model name, the prompts, ``--steps`` (at least 1 and what the family samples
-with; the trained step counts are read from params, and the family checks the loaded model
-again), each length against the feature store's training motions (its shortest to its longest),
-the output names and formats (MP4 needs ffmpeg on PATH).
+status 1): the model name, the prompts (none empty), ``--part``/``--segment``, ``--steps`` (at least
+1 and what the family samples with; the trained step counts are read from params, and the family
+checks the loaded model again), ``--guidance`` and ``--size``, each length against the feature
+store's training motions (its shortest to its longest), the shared params sections (``sample``
+overrides), the output names and formats (MP4 needs ffmpeg on PATH) and that the outputs can be
+written. An ``--out`` ending in ``/`` is a directory whatever its name.
 
 ``--trajectory`` (controlled models only): a pelvis path, ``circle``/``line``/``zigzag``
 (:mod:`data.trajectories`, ``--size`` metres) or a ``.npy`` of (length, 3) pelvis positions in
@@ -50,6 +52,7 @@ A:B=TEXT`` (repeatable): frames [A, B) follow TEXT; segments may overlap and mus
 from __future__ import annotations
 
 import argparse
+import math
 import os
 import re
 import shutil
@@ -73,7 +76,7 @@ from data.trajectories import SHAPES, load_trajectory, make_trajectory
 from models.generator import ControlledGenerator, Hint
 from models.motiondiffuse import PART_UNIONS, REST
 from models.motionlcm import TIMESTEPS as LCM_STEPS
-from pipelines.cli import artifacts_dir, repo_path
+from pipelines.cli import artifacts_dir, check_shared, repo_path
 from pipelines.config import load_params
 from pipelines.feature_store import FeatureStore
 from pipelines.motiondiffuse_family import MotionDiffuseRow, sample_body_parts, sample_time_varied
@@ -91,6 +94,8 @@ DEFAULT_FORMAT = "gif"
 DRAWN = (".gif", ".mp4", ".png")
 #: Prompts sampled together: bounds the memory of a long prompt file.
 BATCH = 32
+#: Network evaluations per motion from which the command says that sampling takes a while.
+SLOW_NFE = 200
 
 
 def parse_parts(specs: Sequence[str]) -> list[tuple[str, str]]:
@@ -229,7 +234,10 @@ def allowed_steps(model: str, params: dict[str, Any]) -> tuple[Callable[[int], b
                                          f"({stage}.num_steps)"
     stage = {"mld": "train_mld", "motiondiffuse": "train_motiondiffuse"}[model]
     total = params[stage]["num_train_timesteps"]
-    return (lambda n: 1 <= n <= total), f"1..{total} ({stage}.num_train_timesteps)"
+    if model == "motiondiffuse":
+        return (lambda n: 1 <= n <= total), (f"MotionDiffuse samples with DDIM over 1..{total - 1} steps or DDPM over "
+                                             f"all {total} ({stage}.num_train_timesteps)")
+    return (lambda n: 1 <= n <= total), f"MLD samples with DDIM over 1..{total} steps ({stage}.num_train_timesteps)"
 
 
 def check_steps(model: str, steps: int | None, params: dict[str, Any]) -> None:
@@ -250,26 +258,46 @@ def check_format(fmt: str, where: str) -> None:
         raise ValueError(f"{where}: writing MP4 needs ffmpeg on PATH, which is not installed; write a .gif instead")
 
 
-def output_paths(out: Path, fmt: str | None, prompts: Sequence[Prompt]) -> list[Path]:
+def output_paths(out: Path, fmt: str | None, prompts: Sequence[Prompt], directory: bool = False) -> list[Path]:
     """One path per prompt: ``out`` itself when it names a file, else ``out/NN_<words>.<format>`` (module docstring).
 
-    Checks the format (:func:`check_format`); creates nothing.
+    ``directory`` (``--out`` ends with a slash): ``out`` is a directory whatever its name. Checks the format
+    (:func:`check_format`) and that every path can be written (:func:`check_writable`); creates nothing.
     """
+    fmt = None if fmt is None else fmt.lower()
     suffix = out.suffix.lower().lstrip(".")
-    if suffix and not out.is_dir():
+    if suffix and not directory and not out.is_dir():
         check_format(suffix, f"--out {out}")
         if fmt is not None and fmt != suffix:
             raise ValueError(f"--out {out} and --format {fmt} disagree; give one of them")
         if len(prompts) > 1:
             raise ValueError(f"--out {out}: {len(prompts)} prompts are written into a directory; give a directory "
                              "(and --format)")
-        return [out]
-    fmt = fmt or DEFAULT_FORMAT
-    check_format(fmt, f"--format {fmt}")
-    if out.exists() and not out.is_dir():
-        raise ValueError(f"--out {out}: exists and is not a directory")
-    width = max(2, len(str(len(prompts) - 1)))
-    return [out / f"{k:0{width}d}_{slug(p.text)}.{fmt}" for k, p in enumerate(prompts)]
+        paths = [out]
+    else:
+        fmt = fmt or DEFAULT_FORMAT
+        check_format(fmt, f"--format {fmt}")
+        if out.exists() and not out.is_dir():
+            raise ValueError(f"--out {out}: exists and is not a directory")
+        width = max(2, len(str(len(prompts) - 1)))
+        paths = [out / f"{k:0{width}d}_{slug(p.text)}.{fmt}" for k, p in enumerate(prompts)]
+    check_writable(out, paths)
+    return paths
+
+
+def check_writable(out: Path, paths: Sequence[Path]) -> None:
+    """ValueError naming ``--out`` when a path is a directory, or its nearest existing ancestor is a file or
+    not writable (so that nothing fails after sampling)."""
+    for path in paths:
+        if path.is_dir():
+            raise ValueError(f"--out {out}: {path} is a directory")
+    folder = paths[0].parent
+    while not folder.exists() and folder != folder.parent:
+        folder = folder.parent
+    if not folder.is_dir():
+        raise ValueError(f"--out {out}: {folder} is a file, not a directory")
+    if not os.access(folder, os.W_OK | os.X_OK):
+        raise ValueError(f"--out {out}: cannot write into {folder} (permission denied)")
 
 
 def slug(text: str, limit: int = 40) -> str:
@@ -348,11 +376,12 @@ class Request:
 def plan(params: dict[str, Any], model: str, prompts: Sequence[Prompt], out: Path, fmt: str | None = None,
          seed: int = 0, steps: int | None = None, guidance: float | None = None, trajectory: str | None = None,
          size: float | None = None, refine: bool = False, parts: Sequence[tuple[str, str]] = (),
-         segments: Sequence[tuple[int, int, str]] = ()) -> Request:
+         segments: Sequence[tuple[int, int, str]] = (), directory: bool = False) -> Request:
     """Check the request's options without a model (module docstring); ValueError on the first problem.
 
     With ``parts`` or ``segments`` (``--model motiondiffuse``) ``prompts`` holds the one motion's length.
     The lengths are checked against the dataset by :func:`check_dataset_lengths` (the command does).
+    ``directory``: ``out`` names a directory (:func:`output_paths`).
     """
     entry = FAMILIES.get(model)
     if entry is None or entry.generator is None:
@@ -365,12 +394,19 @@ def plan(params: dict[str, Any], model: str, prompts: Sequence[Prompt], out: Pat
     if (parts or segments) and (len(prompts) != 1 or trajectory is not None or refine):
         raise ValueError("--part/--segment make one motion: no --text, --prompts, --trajectory or --refine with them")
     for prompt in prompts:
+        if not (parts or segments) and not prompt.text.strip():
+            raise ValueError(f"{prompt.source}: empty prompt")
         if prompt.length < 1:
             raise ValueError(f"{prompt.source}: length {prompt.length} must be at least 1 frame")
     check_steps(model, steps, params)
-    if guidance is not None and guidance < 0:
-        raise ValueError(f"--guidance {guidance}: must be at least 0")
-    paths = output_paths(out, fmt, prompts)
+    if guidance is not None and not (math.isfinite(guidance) and guidance >= 0):
+        raise ValueError(f"--guidance {guidance}: must be a finite number, at least 0")
+    if size is not None:
+        if trajectory is None:
+            raise ValueError("--size: it sizes a --trajectory shape, and no --trajectory is given")
+        if not (math.isfinite(size) and size > 0):
+            raise ValueError(f"--size {size}: must be a positive number of metres")
+    paths = output_paths(out, fmt, prompts, directory)
     return Request(model, list(prompts), paths, GenerateOptions(steps=steps, guidance=guidance, refine=refine), seed,
                    trajectory, size, parts, segments)
 
@@ -401,6 +437,9 @@ def run_request(params: dict[str, Any], request: Request) -> list[Path]:
     target = None if request.trajectory is None else pelvis_path(request.trajectory, longest, ctx.store,
                                                                  request.size)
     generator = family(request.model).build_generator(ctx, request.options)
+    if getattr(generator, "nfe", 0) >= SLOW_NFE:
+        print(f"{generator.name}: {generator.nfe} network evaluations per motion (and per --part or --segment); "
+              "on a CPU this takes minutes", file=sys.stderr, flush=True)
     if request.parts or request.segments:
         motion, caption = generate_composed(ctx, generator, request.parts, request.segments, longest, request.seed)
         [joints] = ctx.store.to_joints(motion, [longest])
@@ -454,25 +493,21 @@ def generate(params: dict[str, Any], model: str, texts: Sequence[str], lengths: 
                                     parts, segments))
 
 
-def check_composition(parser: argparse.ArgumentParser,
-                      args: argparse.Namespace) -> tuple[list[tuple[str, str]], list[tuple[int, int, str]]]:
-    """``--text`` / ``--part`` / ``--segment`` checked together (``parser.error``: one line, exit status 2)."""
+def check_composition(args: argparse.Namespace) -> tuple[list[tuple[str, str]], list[tuple[int, int, str]]]:
+    """``--text`` / ``--part`` / ``--segment`` checked together; ValueError on the first problem."""
     prompts = getattr(args, "prompts", None)  # absent from a Namespace built without --prompts
     if not (args.part or args.segment):
         if not args.text and prompts is None:
-            parser.error("the following arguments are required: --text or --prompts (or --part / --segment)")
+            raise ValueError("no prompt: give --text or --prompts (or, for motiondiffuse, --part / --segment)")
         return [], []
     if args.model != COMPOSABLE:
-        parser.error(f"--part/--segment: only --model {COMPOSABLE} composes prompts, not {args.model!r}")
+        raise ValueError(f"--part/--segment: only --model {COMPOSABLE} composes prompts, not {args.model!r}")
     if args.part and args.segment:
-        parser.error("--part and --segment: use one kind of composition")
+        raise ValueError("--part and --segment: use one kind of composition")
     if args.text or prompts is not None or args.trajectory is not None or args.refine:
-        parser.error("--part/--segment make one motion from their own texts: no --text, --prompts, --trajectory or "
-                     "--refine")
-    try:
-        return (parse_parts(args.part), []) if args.part else ([], parse_segments(args.segment, args.length))
-    except ValueError as err:
-        parser.error(str(err))
+        raise ValueError("--part/--segment make one motion from their own texts: no --text, --prompts, --trajectory "
+                         "or --refine")
+    return (parse_parts(args.part), []) if args.part else ([], parse_segments(args.segment, args.length))
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -489,9 +524,9 @@ def build_parser() -> argparse.ArgumentParser:
                         help="frames at the dataset's fps (HumanML3D: 20) for prompts without one (default 120); "
                         "every length must lie within the feature store's training motions (HumanML3D: 40..196), "
                         "the error says the range")
-    parser.add_argument("--out", type=Path, required=True,
+    parser.add_argument("--out", required=True,
                         help="a file whose extension is the format (.gif, .mp4, .png, .npy, .bvh; one prompt), or a "
-                        "directory receiving NN_<words>.<format> per prompt")
+                        "directory receiving NN_<words>.<format> per prompt (a trailing / makes it one)")
     parser.add_argument("--format", dest="fmt", default=None, metavar="FORMAT",
                         help=f"{', '.join(FORMATS)}: the format of the files written into a directory --out "
                         f"(default {DEFAULT_FORMAT})")
@@ -517,20 +552,27 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: Sequence[str] | None = None) -> None:
     parser = build_parser()
     args, overrides = parser.parse_known_args(argv)
-    parts, segments = check_composition(parser, args)
+    unknown = [arg for arg in overrides if arg.startswith("-")]
+    if unknown:
+        parser.error(f"unrecognized arguments: {' '.join(unknown)}")
     try:
+        parts, segments = check_composition(args)
         params = load_params(overrides)
+        problems = check_shared(params, ())
+        if problems:
+            raise ValueError("\n".join(problems))
         if parts or segments:
             prompts = [Prompt("", args.length, "--length")]
         else:
             prompts = [Prompt(text, args.length, f"--text {text!r}") for text in args.text]
             if args.prompts is not None:
                 prompts += parse_prompt_file(args.prompts, args.length)
-        request = plan(params, args.model, prompts, args.out, args.fmt, args.seed, args.steps, args.guidance,
-                       args.trajectory, args.size, args.refine, parts, segments)
+        request = plan(params, args.model, prompts, Path(args.out), args.fmt, args.seed, args.steps, args.guidance,
+                       args.trajectory, args.size, args.refine, parts, segments,
+                       directory=args.out.endswith(("/", os.sep)))
         check_dataset_lengths(params, prompts)
         paths = run_request(params, request)
-    except (ValueError, FileNotFoundError) as err:
+    except (ValueError, OSError) as err:
         sys.exit(f"generate: {err}")
     print("\n".join(str(p) for p in paths))
 

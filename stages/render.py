@@ -10,6 +10,7 @@ params.yaml), ``--skeleton`` (default ``data.skeleton``), ``--stride``.
 from __future__ import annotations
 
 import argparse
+import sys
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -55,12 +56,15 @@ def main(argv: Sequence[str] | None = None) -> Path:
     parser.add_argument("--skeleton", help="humanml3d or kit (default: data.skeleton)")
     parser.add_argument("--stride", type=int, default=2, help="draw every n-th frame (default 2)")
     args = parser.parse_args(argv)
-    data_cfg = load_params([])["data"]
-    root = args.root or (REPO_ROOT / data_cfg["root"])
-    skeleton = get_skeleton(args.skeleton or data_cfg["skeleton"])
-    motion, caption, name = find_motion(args.motion, root)
-    out = args.out or REPO_ROOT / "artifacts" / "renders" / f"{name}.gif"
-    render_animation(joints_of(motion, _recover, skeleton), out, args.caption or caption, skeleton, args.stride)
+    try:
+        data_cfg = load_params([])["data"]
+        root = args.root or (REPO_ROOT / data_cfg["root"])
+        skeleton = get_skeleton(args.skeleton or data_cfg["skeleton"])
+        motion, caption, name = find_motion(args.motion, root)
+        out = args.out or REPO_ROOT / "artifacts" / "renders" / f"{name}.gif"
+        render_animation(joints_of(motion, _recover, skeleton), out, args.caption or caption, skeleton, args.stride)
+    except (ValueError, OSError) as err:  # a user's file or option: one line, exit status 1
+        sys.exit(f"render: {err}")
     print(out)
     return out
 

@@ -69,6 +69,22 @@ def test_output_names(tmp_path: Path) -> None:
     eleven = generate.output_paths(tmp_path / "out", "npy", prompts[:1] * 101)
     assert eleven[0].name == "000_a_person_walks_then_sits_down.npy" and eleven[-1].name.startswith("100_")
     assert not (tmp_path / "out").exists()
+    # a trailing slash (directory=True) makes a dotted name a directory; --format is case-blind
+    assert generate.output_paths(tmp_path / "runs.v2", "GIF", prompts[:1], directory=True) == [
+        tmp_path / "runs.v2" / "00_a_person_walks_then_sits_down.gif"]
+    assert not (tmp_path / "runs.v2").exists()
+
+
+def test_output_paths_that_cannot_be_written_fail_before_sampling(tmp_path: Path) -> None:
+    """A path that is a directory, or under a file, is refused while nothing has been sampled."""
+    prompts = [Prompt("a person walks", 60, "x"), Prompt("a person jumps", 60, "y")]
+    (tmp_path / "out" / "01_a_person_jumps.npy").mkdir(parents=True)
+    with pytest.raises(ValueError, match=r"01_a_person_jumps.npy is a directory"):
+        generate.output_paths(tmp_path / "out", "npy", prompts)
+    (tmp_path / "file.npy").write_bytes(b"")
+    with pytest.raises(ValueError, match=r"file.npy is a file, not a directory"):
+        generate.output_paths(tmp_path / "file.npy" / "deeper" / "x.npy", None, prompts[:1])
+    assert sorted(p.name for p in (tmp_path / "out").iterdir()) == ["01_a_person_jumps.npy"]
 
 
 def test_length_range_is_the_training_split(small_store: dict[str, Any]) -> None:
@@ -133,6 +149,17 @@ def cases(tmp: Path, store: str, low: int, high: int) -> list[tuple[list[str], s
          f"--model: unknown model family 'nope'; choose one of {known}"),
         ([*walks, "--model", "vae", "--out", str(tmp / "w.gif")],
          f"--model: model family 'vae' has no generator (it is evaluated only); choose one of {known}"),
+        (["--text", "  ", "--out", str(tmp / "w.gif")], "--text '  ': empty prompt"),
+        ([*walks, "--guidance", "nan", "--out", str(tmp / "w.gif")], "--guidance nan: must be a finite number, at "
+                                                                     "least 0"),
+        ([*walks, "--size", "2", "--out", str(tmp / "w.gif")],
+         "--size: it sizes a --trajectory shape, and no --trajectory is given"),
+        ([*walks, "--model", "motionlcm-control", "--trajectory", "line", "--size", "-1", "--out", str(tmp / "w.gif")],
+         "--size -1.0: must be a positive number of metres"),
+        ([*walks, "--out", str(prompts / "w.npy")], f"--out {prompts / 'w.npy'}: {prompts} is a file, not a directory"),
+        ([*walks, "--out", f"{prompts}/"], f"--out {prompts}: exists and is not a directory"),
+        ([*walks, "--out", str(tmp / "w.gif"), "sample.mld_guidance=abc"],
+         "sample.mld_guidance: expected a number >= 0.0, got 'abc'"),
     ]
 
 

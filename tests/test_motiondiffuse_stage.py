@@ -362,30 +362,39 @@ def test_bad_segments_are_named(specs: list[str], message: str) -> None:
 
 @pytest.mark.parametrize(("argv", "message"), [
     (["--model", "mld", "--part", "whole=walks"], "only --model motiondiffuse composes"),
-    (["--model", "mld"], "required: --text"),
+    (["--model", "mld"], "no prompt: give --text"),
     (["--model", "mld", "--segment", "0:120=walks", "--part", "whole=walks"], "only --model motiondiffuse"),
+    (["--model", "motiondiffuse", "--part", "hands=waves"], "unknown body part 'hands'"),
 ])
-def test_generate_cli_errors_are_one_line_exit_2(argv: list[str], message: str,
+def test_generate_cli_errors_are_one_line_exit_1(argv: list[str], message: str,
                                                  capsys: pytest.CaptureFixture[str]) -> None:
+    """Composition errors as every other check before loading: ``generate: <reason>``, exit status 1."""
     with pytest.raises(SystemExit) as exit_info:
         generate.main([*argv, "--out", "x.gif"])
-    assert exit_info.value.code == 2 and message in capsys.readouterr().err
+    code = exit_info.value.code  # sys.exit(message): printed to stderr, exit status 1
+    assert isinstance(code, str) and code.startswith("generate: ") and message in code and "\n" not in code
+    assert capsys.readouterr().err == ""  # no argparse usage block
 
 
-def test_generate_cli_checks_specs_for_motiondiffuse(capsys: pytest.CaptureFixture[str]) -> None:
-    """The model check comes from argparse's choices until the registry lists motiondiffuse; then the specs'."""
-    parser = generate.argparse.ArgumentParser(prog="generate")
+def test_generate_cli_rejects_a_mistyped_option(capsys: pytest.CaptureFixture[str]) -> None:
+    """An unknown ``--option`` is argparse's usage error, not a malformed ``key=value`` override."""
+    with pytest.raises(SystemExit) as exit_info:
+        generate.main(["--text", "walks", "--lenght", "60", "--out", "x.gif"])
+    assert exit_info.value.code == 2 and "unrecognized arguments: --lenght" in capsys.readouterr().err
+
+
+def test_generate_cli_checks_specs_for_motiondiffuse() -> None:
+    """``check_composition``: the first problem of ``--part`` / ``--segment`` with the other options, else the specs."""
     base = {"model": "motiondiffuse", "text": [], "trajectory": None, "refine": False, "length": 120}
     cases = [({"part": ["upper=waves"], "segment": []}, "uncovered"),
              ({"part": ["whole=walks"], "segment": ["0:120=walks"]}, "use one kind"),
              ({"part": [], "segment": ["0:50=walks"]}, "not covered"),
              ({"part": ["whole=walks"], "segment": [], "text": ["walks"]}, "no --text")]
     for change, message in cases:
-        with pytest.raises(SystemExit) as exit_info:
-            generate.check_composition(parser, generate.argparse.Namespace(**(base | change)))
-        assert exit_info.value.code == 2 and message in capsys.readouterr().err
+        with pytest.raises(ValueError, match=message):
+            generate.check_composition(generate.argparse.Namespace(**(base | change)))
     ok = generate.argparse.Namespace(**(base | {"part": [], "segment": ["0:120=walks"]}))
-    assert generate.check_composition(parser, ok) == ([], [(0, 120, "walks")])
+    assert generate.check_composition(ok) == ([], [(0, 120, "walks")])
 
 
 # --------------------------------------------------------------------------------------------------

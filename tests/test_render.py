@@ -119,8 +119,24 @@ def test_render_command_takes_a_file_or_a_clip_id(tmp_path, motion):
     out = render_stage.main(["000007", "--root", str(root), "--out", str(tmp_path / "by_id.gif"), "--stride", "4"])
     with Image.open(out) as gif:
         assert gif.n_frames == len(range(0, len(motion.joints), 4))
-    with pytest.raises(FileNotFoundError, match="neither"):
-        render_stage.main(["999999", "--root", str(root)])
+
+
+
+def test_render_command_errors_are_one_line(tmp_path, motion):
+    """A missing clip, a wrong shape or a wrong output name: ``render: <reason>``, exit status 1, nothing written."""
+    flat = tmp_path / "flat.npy"
+    np.save(flat, np.zeros((120, 3), np.float32))
+    good = tmp_path / "good.npy"
+    np.save(good, motion.joints)
+    cases = [(["999999", "--root", str(tmp_path)], "is neither a .npy file nor a clip id"),
+             ([str(flat), "--out", str(tmp_path / "flat.gif")], "got (120, 3)"),
+             ([str(good), "--out", str(tmp_path / "good.txt")], "good.txt")]
+    for argv, message in cases:
+        with pytest.raises(SystemExit) as exit_info:
+            render_stage.main(argv)
+        code = exit_info.value.code
+        assert isinstance(code, str) and code.startswith("render: ") and message in code, (argv, code)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["flat.npy", "good.npy"]
 
 
 def test_render_command_recovers_features(tmp_path, motion):
