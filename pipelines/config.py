@@ -20,6 +20,7 @@ from __future__ import annotations
 import argparse
 import copy
 import dataclasses
+import math
 import re
 import sys
 import types
@@ -86,12 +87,12 @@ def dotted(where: str, key: str) -> str:
 
 def check_number(cfg: Mapping[str, Any], key: str, where: str, *, low: float, high: float | None = None,
                  low_open: bool = False, high_open: bool = False, integer: bool = False) -> float:
-    """``cfg[key]`` checked to be a number (an int if ``integer``, never a bool) within its bounds (open or
-    closed); a ConfigError naming ``<where>.<key>``, the bounds and the value otherwise."""
+    """``cfg[key]`` checked to be a finite number (an int if ``integer``, never a bool) within its bounds (open
+    or closed); a ConfigError naming ``<where>.<key>``, the bounds and the value otherwise (NaN and inf too)."""
     value = cfg[key]
     kinds = (int,) if integer else (int, float)
     bad_type = isinstance(value, bool) or not isinstance(value, kinds)
-    if (bad_type or value < low or (low_open and value == low) or (high is not None and value > high)
+    if (bad_type or not math.isfinite(value) or value < low or (low_open and value == low) or (high is not None and value > high)
             or (high_open and value == high)):
         upper = "" if high is None else f" and {'<' if high_open else '<='} {high}"
         kind = "an integer" if integer else "a number"

@@ -211,6 +211,15 @@ def test_errors_of_several_keys_are_one_line_each():
     ]
 
 
+@pytest.mark.parametrize("override", ["train_vae.lr=.nan", "train_vae.lr=.inf", "train_vae.kl_weight=.inf"])
+def test_nan_and_infinity_are_not_numbers_in_bounds(override):
+    """A YAML ``.nan`` compares False with every bound and ``.inf`` passes a lower one: both are refused."""
+    params = restrict_params(load_params([override]), train_vae.STAGE.params)
+    key, value = override.split("=")
+    [error] = check_params(params, train_vae.STAGE.params, checks(train_vae.STAGE))
+    assert error.startswith(f"{key}: expected a number ") and error.endswith(f"got {float(value.replace('.', '', 1))}")
+
+
 def test_unknown_key_of_a_shared_section_added_with_plus_is_an_error():
     params = restrict_params(load_params(["+features.wrokers=2"]), extract_features.PARAMS)
     assert check_shared(params, extract_features.PARAMS) == [
