@@ -92,8 +92,8 @@ def check_number(cfg: Mapping[str, Any], key: str, where: str, *, low: float, hi
     value = cfg[key]
     kinds = (int,) if integer else (int, float)
     bad_type = isinstance(value, bool) or not isinstance(value, kinds)
-    if (bad_type or not math.isfinite(value) or value < low or (low_open and value == low) or (high is not None and value > high)
-            or (high_open and value == high)):
+    if (bad_type or not math.isfinite(value) or value < low or (low_open and value == low)
+            or (high is not None and value > high) or (high_open and value == high)):
         upper = "" if high is None else f" and {'<' if high_open else '<='} {high}"
         kind = "an integer" if integer else "a number"
         raise ConfigError(f"{dotted(where, key)}: expected {kind} {'>' if low_open else '>='} {low}{upper}, "

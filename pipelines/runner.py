@@ -61,6 +61,7 @@ from torch.utils.data import DataLoader, Dataset, DistributedSampler
 from data.atomic import atomic_directory, check_output
 from pipelines import checkpoint as ckpt
 from pipelines import tracking
+from pipelines.config import check_number
 from pipelines.schedules import EMA, make_scheduler
 
 #: Offset between the RNG seeds of consecutive ranks (a prime, far from small seeds).
@@ -200,9 +201,16 @@ class LoopSettings:
                 raise ValueError(f"{where}.{f.name}: expected {kind.__name__}, got {value!r}")
         if section["lr_schedule"] not in ("cosine", "constant"):
             raise ValueError(f"{where}.lr_schedule: {section['lr_schedule']!r} is not cosine or constant")
-        if section["batch_size"] < 1 or section["max_steps"] < 1:
-            raise ValueError(f"{where}: batch_size and max_steps must be >= 1")
+        for key, (low, high) in LOOP_BOUNDS.items():
+            check_number(section, key, where, low=low, high=high, integer=isinstance(getattr(cls, key), int))
         return cls(**{f.name: section[f.name] for f in fields(cls)})
+
+
+#: The range of each numeric key of a loop group (low, high; None: unbounded), checked by :meth:`LoopSettings.parse`.
+LOOP_BOUNDS: dict[str, tuple[float, float | None]] = {
+    "seed": (0, None), "batch_size": (1, None), "max_steps": (1, None), "grad_clip": (0.0, None),
+    "warmup_steps": (0, None), "min_lr_ratio": (0.0, 1.0), "log_every": (1, None), "num_data_workers": (0, None),
+    "length_buckets": (0, None)}
 
 
 @dataclass(frozen=True)

@@ -162,6 +162,15 @@ def test_loop_group_is_validated() -> None:
     with pytest.raises(ValueError, match="x.loop.grad_clip: expected float, got True"):
         LoopSettings.parse(LOOP | {"grad_clip": True}, "x.loop")
     assert LoopSettings.parse(LOOP | {"grad_clip": 1}, "x.loop").grad_clip == 1  # an int is a float
+    for change, message in [({"max_steps": 0}, "x.loop.max_steps: expected an integer >= 1, got 0"),
+                            ({"length_buckets": -2}, "x.loop.length_buckets: expected an integer >= 0, got -2"),
+                            ({"min_lr_ratio": 5.0},
+                             "x.loop.min_lr_ratio: expected a number >= 0.0 and <= 1.0, got 5.0"),
+                            ({"grad_clip": -1.0}, "x.loop.grad_clip: expected a number >= 0.0, got -1.0"),
+                            ({"log_every": 0}, "x.loop.log_every: expected an integer >= 1, got 0")]:
+        with pytest.raises(ValueError) as err:
+            LoopSettings.parse(LOOP | change, "x.loop")
+        assert str(err.value) == message
 
 
 def test_stage_config_may_not_repeat_runner_keys() -> None:
