@@ -91,6 +91,8 @@ from ray.util.placement_group import PlacementGroup, remove_placement_group
 
 from data.atomic import atomic_directory, check_output
 from pipelines.checkpoint import MODEL_FILE, load_state
+from pipelines.cli import check_shared
+from pipelines.config import ConfigError, check_choice, check_number
 from pipelines.runner import (
     LoopSettings,
     RayOptions,
@@ -335,23 +337,29 @@ class SweepSettings:
         return settings
 
     def _validate(self) -> None:
-        checks = {
-            "metric": self.metric is None or (isinstance(self.metric, str) and bool(self.metric)),
-            "mode": self.mode in (None, "min", "max"),
-            "scheduler": self.scheduler in ("asha", "fifo"),
-            "num_samples": self.num_samples >= 1,
-            "grace_period": 1 <= self.grace_period <= self.max_t,
-            "reduction_factor": self.reduction_factor >= 2,
-            "report_every": self.report_every >= 1,
-            "max_concurrent_trials": self.max_concurrent_trials == "auto"
-            or (isinstance(self.max_concurrent_trials, int) and self.max_concurrent_trials >= 1),
-            "trial_cpus": self.trial_cpus > 0,
-            "max_failures": self.max_failures >= 0,
-        }
-        bad = [key for key, ok in checks.items() if not ok]
-        if bad:
-            raise SweepConfigError(f"sweep.settings: invalid {', '.join(f'{k}={getattr(self, k)!r}' for k in bad)} "
-                                   "(trial_cpus must be > 0: Ray rejects a zero-CPU trial)")
+        """Each key's type and range; a ConfigError naming ``sweep.settings.<key>``, its value and what is allowed."""
+        try:
+            self._check_each()
+        except ConfigError as err:
+            raise SweepConfigError(str(err)) from None
+
+    def _check_each(self) -> None:
+        values, where = asdict(self), "sweep.settings"
+        if self.metric is not None and not (isinstance(self.metric, str) and self.metric):
+            raise SweepConfigError(f"{where}.metric: expected null or a metric name, got {self.metric!r}")
+        check_choice(values, "mode", where, choices=(None, "min", "max"))
+        check_choice(values, "scheduler", where, choices=("asha", "fifo"))
+        check_number(values, "num_samples", where, low=1, integer=True)
+        check_number(values, "max_t", where, low=1, integer=True)
+        check_number(values, "grace_period", where, low=1, high=self.max_t, integer=True)
+        check_number(values, "reduction_factor", where, low=2)
+        check_number(values, "report_every", where, low=1, integer=True)
+        if self.max_concurrent_trials != "auto":
+            check_number(values, "max_concurrent_trials", where, low=1, integer=True)
+        check_number(values, "trial_cpus", where, low=0, low_open=True)  # Ray rejects a zero-CPU trial
+        check_number(values, "max_failures", where, low=0, integer=True)
+        if self.seed is not None:
+            check_number(values, "seed", where, low=0, integer=True)
 
 
 def fit_concurrency(cluster: Mapping[str, float], num_workers: int, cpus_per_worker: float,
@@ -724,8 +732,15 @@ def _parquet_table(table: Sequence[Mapping[str, Any]]) -> pa.Table:
 
 
 def write_outputs(out_dir: Path, stage: str, table: list[dict[str, Any]], best: Mapping[str, Any],
-                  keys: Sequence[str], settings: SweepSettings, experiment_path: str) -> None:
-    """Atomically write results.parquet, results.md and best_params.yaml to ``out_dir``."""
+                  space: Mapping[str, Dimension], settings: SweepSettings, experiment_path: str) -> None:
+    """Atomically write results.parquet and results.md (both best first) and best_params.yaml to ``out_dir``.
+
+    best_params.yaml holds the best trial's values of the varied keys only: a key the space fixed (e.g. a
+    shorter ``loop.max_steps`` for the sweep) is named in a comment, not carried over to the stage's params.
+    """
+    keys = list(space)
+    varied = [key for key, dim in space.items() if dim.kind != "fixed"]
+    fixed = {key: dim.args[0] for key, dim in space.items() if dim.kind == "fixed"}
     scored = sorted((r for r in table if r[settings.metric] is not None), key=lambda r: r[settings.metric],
                     reverse=settings.mode == "max")
     ordered = scored + [r for r in table if r[settings.metric] is None]
@@ -734,15 +749,25 @@ def write_outputs(out_dir: Path, stage: str, table: list[dict[str, Any]], best: 
               f"{best[settings.metric]:.6g} by trial {best['trial_id']}. Experiment: `{experiment_path}`\n\n")
     best_yaml = (f"# Best of the {stage} sweep: {settings.metric} {best[settings.metric]:.6g} (trial "
                  f"{best['trial_id']}). Use with `dvc exp run -S {stage}.<key>=<value>` or copy into conf/.\n")
-    best_yaml += yaml.safe_dump({stage: nest_keys({key: best[key] for key in keys})}, sort_keys=False)
+    if fixed:
+        best_yaml += ("# Fixed for every trial, so not carried over: "
+                      f"{', '.join(f'{key}={value!r}' for key, value in fixed.items())}\n")
+    best_yaml += yaml.safe_dump({stage: nest_keys({key: best[key] for key in varied})}, sort_keys=False)
     with atomic_directory(out_dir, owner="sweep") as tmp:
-        pq.write_table(_parquet_table(table), tmp / "results.parquet")
+        pq.write_table(_parquet_table(ordered), tmp / "results.parquet")
         (tmp / "results.md").write_text(header + markdown_table(ordered, columns), encoding="utf-8")
         (tmp / "best_params.yaml").write_text(best_yaml, encoding="utf-8")
 
 
 def ranking_settings(settings: SweepSettings, target: SweepTarget) -> SweepSettings:
-    """``settings`` with ``metric``/``mode`` resolved: the ones set there, else the target's."""
+    """``settings`` with ``metric``/``mode`` resolved: the ones set there, else the target's.
+
+    Another metric than the target's needs its own ``mode``: the target's belongs to its own metric (a
+    loss ranked with an accuracy's ``max`` would pick the worst trial); a SweepConfigError says so.
+    """
+    if settings.metric not in (None, target.metric) and settings.mode is None:
+        raise SweepConfigError(f"sweep.settings.metric={settings.metric!r}: give sweep.settings.mode too (min or "
+                               f"max); {target.stage}'s mode {target.mode!r} is that of its metric {target.metric!r}")
     return replace(settings, metric=settings.metric or target.metric, mode=settings.mode or target.mode)
 
 
@@ -769,6 +794,9 @@ def run_sweep(target: SweepTarget, params: dict, repo_root: Path, *, callbacks: 
     ``callbacks`` are Tune callbacks of a new experiment (a restored one keeps its own).
     """
     stage = target.stage
+    problems = check_shared(params, ())  # the ray section above all, before Ray starts
+    if problems:
+        raise SweepConfigError("\n".join(problems))
     sweep = params.get("sweep") or {}
     settings = ranking_settings(SweepSettings.from_dict(sweep.get("settings")), target)
     space = parse_space(stage, sweep.get(stage), params[stage])
@@ -789,11 +817,10 @@ def run_sweep(target: SweepTarget, params: dict, repo_root: Path, *, callbacks: 
     finally:
         if started:
             ray.shutdown()
-    keys = list(space)
-    table = results_table(analysis, keys, settings)
+    table = results_table(analysis, list(space), settings)
     check_outcome(table, expected_trials(space, settings.num_samples))
     best = best_row(table, settings.metric, settings.mode)
     if best is None:
         raise SweepFailed(f"no trial reported {settings.metric!r}", table)
-    write_outputs(artifacts / stage, stage, table, best, keys, settings, analysis.experiment_path)
+    write_outputs(artifacts / stage, stage, table, best, space, settings, analysis.experiment_path)
     return SweepResult(artifacts / stage, analysis.experiment_path, settings.metric, table, best, restored)

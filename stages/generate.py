@@ -232,7 +232,9 @@ def allowed_steps(model: str, params: dict[str, Any]) -> tuple[Callable[[int], b
         trained = params[stage]["num_steps"]
         return (lambda n: n == trained), f"{what} samples with the {trained} steps it was trained with " \
                                          f"({stage}.num_steps)"
-    stage = {"mld": "train_mld", "motiondiffuse": "train_motiondiffuse"}[model]
+    stage = {"mld": "train_mld", "motiondiffuse": "train_motiondiffuse"}.get(model)
+    if stage is None:  # a family added later checks its steps when its model is loaded
+        return (lambda n: True), ""
     total = params[stage]["num_train_timesteps"]
     if model == "motiondiffuse":
         return (lambda n: 1 <= n <= total), (f"MotionDiffuse samples with DDIM over 1..{total - 1} steps or DDPM over "

@@ -24,6 +24,7 @@ from data.skeleton import HUMANML3D
 from models.mld import MLDConfig, MLDDenoiser
 from models.vae import MotionVAE, MotionVAEConfig
 from pipelines.checkpoint import final_model_payload, save_final_model
+from pipelines.config import load_params
 from pipelines.feature_store import FeatureStore
 from stages import generate
 from stages.generate import Prompt
@@ -85,6 +86,16 @@ def test_output_paths_that_cannot_be_written_fail_before_sampling(tmp_path: Path
     with pytest.raises(ValueError, match=r"file.npy is a file, not a directory"):
         generate.output_paths(tmp_path / "file.npy" / "deeper" / "x.npy", None, prompts[:1])
     assert sorted(p.name for p in (tmp_path / "out").iterdir()) == ["01_a_person_jumps.npy"]
+
+
+def test_steps_of_a_family_generate_does_not_know_are_left_to_the_family() -> None:
+    """A family added after this module (README, "Adding a model") checks ``--steps`` itself when loaded."""
+    params = load_params([])
+    generate.check_steps("lcm", 4, params)  # no KeyError
+    with pytest.raises(ValueError, match="--steps 0: must be at least 1"):
+        generate.check_steps("lcm", 0, params)
+    with pytest.raises(ValueError, match=r"--steps 1001: MLD samples with DDIM over 1..1000 steps"):
+        generate.check_steps("mld", 1001, params)
 
 
 def test_length_range_is_the_training_split(small_store: dict[str, Any]) -> None:

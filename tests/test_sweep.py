@@ -214,10 +214,18 @@ def test_settings_validation() -> None:
     assert SweepSettings.from_dict({"num_samples": 3}).num_samples == 3
     with pytest.raises(SweepConfigError, match="unknown key"):
         SweepSettings.from_dict({"num_sample": 3})
-    with pytest.raises(SweepConfigError, match="trial_cpus=0"):
-        SweepSettings.from_dict({"trial_cpus": 0})
-    with pytest.raises(SweepConfigError, match="mode='low'"):
-        SweepSettings.from_dict({"mode": "low"})
+    bad = [({"trial_cpus": 0}, "sweep.settings.trial_cpus: expected a number > 0, got 0"),
+           ({"mode": "low"}, "sweep.settings.mode: expected one of [None, 'min', 'max'], got 'low'"),
+           ({"num_samples": "abc"}, "sweep.settings.num_samples: expected an integer >= 1, got 'abc'"),
+           ({"num_samples": 2.5}, "sweep.settings.num_samples: expected an integer >= 1, got 2.5"),
+           ({"grace_period": 30, "max_t": 24}, "sweep.settings.grace_period: expected an integer >= 1 and <= 24, "
+                                               "got 30"),
+           ({"seed": "abc"}, "sweep.settings.seed: expected an integer >= 0, got 'abc'"),
+           ({"max_concurrent_trials": 0}, "sweep.settings.max_concurrent_trials: expected an integer >= 1, got 0")]
+    for settings, message in bad:
+        with pytest.raises(SweepConfigError) as err:
+            SweepSettings.from_dict(settings)
+        assert str(err.value) == message
 
 
 def test_committed_params_declare_valid_sweeps_ranked_by_validation() -> None:
@@ -305,6 +313,9 @@ def test_trials_are_ranked_by_the_targets_metric_unless_settings_name_one() -> N
     assert (resolved.metric, resolved.mode) == ("val_error", "min")
     chosen = ranking_settings(SweepSettings(metric="loss", mode="max"), target)
     assert (chosen.metric, chosen.mode) == ("loss", "max")
+    with pytest.raises(SweepConfigError, match=r"metric='loss': give sweep.settings.mode too"):
+        ranking_settings(SweepSettings(metric="loss"), target)  # not val_error's min, silently
+    assert ranking_settings(SweepSettings(metric="val_error"), target).mode == "min"
     plain = SweepTarget(stage="toy", spec=TOY_SPEC, loop_config=toy_loop_config)
     assert (ranking_settings(SweepSettings(), plain).metric, plain.mode) == ("loss", "min")
 
@@ -538,8 +549,11 @@ def test_interrupted_smoke_sweep_resumes_and_writes_results(ray_cluster: Any, tm
     assert all(math.isfinite(row["loss"]) and not row["error"] for row in scored)
 
     winner = min(scored, key=lambda row: row["loss"])
-    best = yaml.safe_load((out / "best_params.yaml").read_text())
-    assert best == {STAGE: {"lr": winner["lr"], "margin": 10.0}}
+    best_text = (out / "best_params.yaml").read_text()
+    assert yaml.safe_load(best_text) == {STAGE: {"lr": winner["lr"]}}  # the varied key only
+    assert "# Fixed for every trial, so not carried over: margin=10.0\n" in best_text
+    assert [row["trial_id"] for row in table[:len(scored)]] == [row["trial_id"] for row in
+                                                                sorted(scored, key=lambda row: row["loss"])]
     rows = [line for line in (out / "results.md").read_text().splitlines() if line.startswith("| ")]
     assert len(rows) == 5 and winner["trial_id"] in rows[1] and "Invalid learning rate" in rows[-1]
     assert cpus_freed(ray_cluster), "stopped or interrupted trials left resources behind"
@@ -579,6 +593,21 @@ def test_bad_stage_params_exit_2_before_any_work(monkeypatch: pytest.MonkeyPatch
     assert len(err) == 1 and err[0].startswith("sweep train_vae: train_vae.joint_space") and "local" in err[0]
 
 
+def test_bad_ray_settings_exit_2_before_ray_starts(monkeypatch: pytest.MonkeyPatch,
+                                                   capsys: pytest.CaptureFixture) -> None:
+    """The ``ray`` section is checked as every stage checks it, one line per key, before Ray is started."""
+    import pipelines.sweep
+
+    monkeypatch.setattr(pipelines.sweep, "ensure_ray", _no_ray)
+    params = compose_params(["scale=smoke"])
+    params["ray"] |= {"use_gpu": "maybe", "num_workers": -1}
+    exit_ = _sweep_main(monkeypatch, params, "train_vae")
+    assert exit_.code == 2
+    err = [line for line in capsys.readouterr().err.strip().splitlines() if line.startswith(("sweep ", "ray."))]
+    assert err == ["sweep train_vae: ray.num_workers: expected an integer >= 0, got -1",
+                   "ray.use_gpu: expected one of ['auto', True, False], got 'maybe'"]
+
+
 def test_missing_feature_store_exits_1_before_any_work(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
     import pipelines.sweep
 
@@ -613,7 +642,7 @@ def test_best_params_are_chosen_by_the_validation_metric(ray_cluster: Any, tmp_p
     assert errors[0.001] < 1.1 < 3.0 < errors[0.1]  # w ~ 0.04 against w ~ 1
     assert "best val_error (min)" in (result.out_dir / "results.md").read_text()
 
-    params["sweep"]["settings"]["metric"] = "loss"
+    params["sweep"]["settings"] |= {"metric": "loss", "mode": "min"}
     by_loss = run_sweep(toy_target(params), params, tmp_path / "by-loss")
     assert yaml.safe_load((by_loss.out_dir / "best_params.yaml").read_text()) == {"toy": {"lr": 0.1}}
     assert cpus_freed(ray_cluster)
