@@ -29,7 +29,8 @@ Motions outside the length bounds are a standard filter, not bad input: they are
 unparsable captions...) is always a :class:`Problem`; ``on_error="fail"`` collects every problem
 of the split and raises one :class:`DatasetError`, ``on_error="skip"`` drops the bad clips and
 lists their problems in :attr:`SplitData.skipped`. Dataset-level problems (a missing split file,
-a malformed ``actions.txt``) raise in both modes. Reading never writes.
+a malformed ``actions.txt``, a split left without any item) raise in both modes. Reading never
+writes.
 
 Caveat: HumanML3D's own ``new_joints`` are ``recover_from_ric(new_joint_vecs)`` and so have as
 many frames as the features; reading them with ``source="joints"`` counts one frame fewer than
@@ -757,7 +758,8 @@ def read_splits(
     from training into evaluation) is a problem of every split after the first that lists it,
     and a split without any item is a problem of its split file. In fail mode one DatasetError
     lists every problem of every split; in skip mode a shared id is read only in its first split
-    and both kinds of problem are listed in the split's ``skipped``.
+    and its problem is listed in the split's ``skipped``. A split without any item is an error in
+    both modes: the stages after it need every split.
     """
     root = Path(root)
     shared = shared_ids(root, splits)
@@ -770,8 +772,7 @@ def read_splits(
             problems += exc.problems
             continue
         if not data.items:
-            empty = _empty_split_problem(root, data)
-            (problems if options.get("on_error", "fail") == "fail" else data.skipped).append(empty)
+            problems += [*data.skipped, _empty_split_problem(root, data)]
         result[split] = data
     if problems:
         raise DatasetError(list(dict.fromkeys(problems)), f"splits {list(splits)} of {root}")

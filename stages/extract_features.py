@@ -168,6 +168,27 @@ def skip_summary(problems: Sequence[Problem], skipped_json: Path, shown: int = 3
     return "\n".join(lines)
 
 
+def filter_summary(filtered: Sequence[Problem], low: int, below: int, shown: int = 3) -> str:
+    """One console line: how many clips and spans the length filter left out, and the first few (by file)."""
+    names = [Path(p.path).name for p in filtered]
+    more = f", ... ({len(names) - shown} more)" if len(names) > shown else ""
+    return (f"extract_features: the length filter left out {len(filtered)} clip(s) or caption span(s) outside "
+            f"{low}..{below - 1} frames ({', '.join(names[:shown])}{more}; counted in meta.json)")
+
+
+def fail_summary(err: DatasetError, shown: int = 20) -> str:
+    """The error of fail mode: its first ``shown`` problems, then how many there are of each kind."""
+    if len(err.problems) <= shown:
+        return str(err)
+    kinds: dict[str, int] = defaultdict(int)
+    for problem in err.problems:
+        kinds[problem.kind] += 1
+    lines = str(err).splitlines()[: shown + 1]
+    lines.append(f"  ... and {len(err.problems) - shown} more; by kind: "
+                 + ", ".join(f"{kind} {count}" for kind, count in kinds.items()))
+    return "\n".join(lines)
+
+
 def run(params: dict[str, Any]) -> Path:
     """Extract features as configured; returns the output directory."""
     data_cfg, feat_cfg = params["data"], params["features"]
@@ -176,6 +197,9 @@ def run(params: dict[str, Any]) -> Path:
     check_output(out, owner="extract_features")
     skeleton = get_skeleton(data_cfg["skeleton"])
     start = time.perf_counter()
+    if not root.is_dir():
+        raise DatasetError([Problem(str(root), "no such dataset folder: point data.root at a folder in the HumanML3D "
+                                               "layout (see the README)")])
 
     splits = read_dataset(root, skeleton, data_cfg)
     feats, failed = clip_features(splits, root, skeleton, feat_cfg["workers"], data_cfg["on_error"])
@@ -201,7 +225,7 @@ def run(params: dict[str, Any]) -> Path:
                 "captions": sum(len(r.captions) for r in rows),
                 "frames": int(sum(r.length for r in rows)),
                 "filtered": len(data.filtered),
-                "skipped": len(data.skipped),
+                "skipped": len(data.skipped) + sum(Path(p.path).stem in data.clips for p in failed),  # problems
             }
         np.save(tmp / "mean.npy", mean.astype(np.float32))
         np.save(tmp / "std.npy", std.astype(np.float32))
@@ -224,6 +248,14 @@ def run(params: dict[str, Any]) -> Path:
         (tmp / "meta.json").write_text(json.dumps(meta, indent=2))
     if skipped:
         sys.stderr.write(skip_summary(skipped, out / "skipped.json") + "\n")
+    untagged = sorted({item.clip_id for data in splits.values() for item in data.items
+                       for caption in item.captions if not caption.tokens})
+    if untagged:  # allowed (the text encoders read the text), but the evaluator reads the tokens
+        sys.stderr.write(f"extract_features: captions of {len(untagged)} clip(s) have no word/POS tokens, which the "
+                         f"T2M evaluator reads as an empty sentence (first: {', '.join(untagged[:3])})\n")
+    filtered = [p for data in splits.values() for p in data.filtered]
+    if filtered:
+        print(filter_summary(filtered, skeleton.min_frames, data_cfg["feature_frames_below"]))
     print(f"extract_features: {sum(c['items'] for c in counts.values())} items, "
           f"{len(text)} distinct captions in {time.perf_counter() - start:.1f} s -> {out}")
     return out
@@ -236,7 +268,7 @@ def main(argv: Sequence[str] | None = None) -> None:
     except DatasetError as err:
         if len(err.problems) == 1:
             sys.exit(f"extract_features: bad input, nothing written: {err.problems[0]}")
-        sys.exit(f"extract_features: bad input, nothing written.\n{err}")
+        sys.exit(f"extract_features: bad input, nothing written.\n{fail_summary(err)}")
 
 
 if __name__ == "__main__":

@@ -17,13 +17,13 @@ import pytest
 
 from data.atomic import atomic_directory
 from data.features import features_from_joints, grouped_mean_std
-from data.humanml3d import Caption
+from data.humanml3d import Caption, DatasetError, Problem
 from data.humanml3d_writer import Clip, write_dataset
 from data.skeleton import HUMANML3D
 from data.store import StoredItem, read_split, write_split
 from pipelines.config import compose_params
 from pipelines.feature_store import FeatureStore
-from stages.extract_features import main, run
+from stages.extract_features import fail_summary, filter_summary, main, run
 
 FIXTURE = Path(__file__).parent / "fixtures" / "humanml3d" / "new_joints_012314.npy"
 REPO = Path(__file__).resolve().parent.parent
@@ -134,7 +134,24 @@ def test_skip_mode_reports_what_it_skipped(dataset, tmp_path):
     skipped = json.loads((out / "skipped.json").read_text())
     assert len(skipped) == 1 and skipped[0]["path"].endswith("0002.npy")
     assert {i.clip_id for i in read_split(out / "train.parquet")} == {"0000", "0001", "0003", "0004", "0005"}
-    assert json.loads((out / "meta.json").read_text())["skipped"] == 1
+    meta = json.loads((out / "meta.json").read_text())
+    assert meta["skipped"] == 1 and meta["counts"]["train"]["skipped"] == 1
+
+
+@pytest.mark.slow  # a whole extract_features stage run
+def test_a_clip_that_fails_extraction_counts_in_its_split(dataset, tmp_path):
+    """Skip mode: a clip that reads but cannot be turned into features (frame 0 collapsed to a point) is a
+    problem of its own split in meta.json, not only of the total."""
+    root = tmp_path / "copy"
+    shutil.copytree(dataset, root)
+    joints = np.load(root / "new_joints" / "0007.npy")
+    joints[0] = joints[0, :1]
+    np.save(root / "new_joints" / "0007.npy", joints)
+    out = run(_params(root, tmp_path / "features", on_error="skip"))
+    meta = json.loads((out / "meta.json").read_text())
+    assert [json.loads((out / "skipped.json").read_text())[0]["kind"]] == ["feature extraction failed"]
+    assert (meta["skipped"], meta["counts"]["test"]["skipped"], meta["counts"]["train"]["skipped"]) == (1, 1, 0)
+    assert {i.clip_id for i in read_split(out / "test.parquet")} == {"0008"}
 
 
 @pytest.mark.slow  # a whole extract_features stage run
@@ -164,6 +181,35 @@ def test_empty_split_fails_in_one_line(dataset, tmp_path, monkeypatch):
     assert str(exc.value) == (f"extract_features: bad input, nothing written: {root}/val.txt: split 'val' is empty: "
                               "the file lists no clip id")
     assert not (tmp_path / "features").exists()
+
+
+def test_a_missing_dataset_folder_says_so_in_one_line(tmp_path, monkeypatch):
+    params = _params(tmp_path / "nowhere", tmp_path / "features")
+    monkeypatch.setattr("pipelines.cli.load_params", lambda argv: params)
+    with pytest.raises(SystemExit) as exc:
+        main([])
+    assert str(exc.value) == (f"extract_features: bad input, nothing written: {tmp_path / 'nowhere'}: no such dataset "
+                              "folder: point data.root at a folder in the HumanML3D layout (see the README)")
+    assert sorted(p.name for p in tmp_path.iterdir()) == []
+
+
+def test_many_problems_are_capped_with_a_count_per_kind():
+    """A wrong skeleton fails every clip: the first problems, then how many of each kind (not 29k lines)."""
+    problems = [Problem(f"new_joints/{k:06d}.npy", "wrong shape", "bad motion") for k in range(30)]
+    problems.append(Problem("texts/000001.txt:2", "bad caption line", "bad caption"))
+    text = fail_summary(DatasetError(problems, "splits"), shown=20)
+    lines = text.splitlines()
+    assert lines[0] == "31 problem(s) in splits:" and len(lines) == 22
+    assert lines[1] == "  - new_joints/000000.npy: wrong shape"
+    assert lines[-1] == "  ... and 11 more; by kind: bad motion 30, bad caption 1"
+    assert fail_summary(DatasetError(problems[:3], "splits")) == str(DatasetError(problems[:3], "splits"))
+
+
+def test_filter_summary_names_the_first_clips():
+    filtered = [Problem(f"/d/new_joints/{k:06d}.npy", "clip too short") for k in range(5)]
+    assert filter_summary(filtered, 40, 200) == (
+        "extract_features: the length filter left out 5 clip(s) or caption span(s) outside 40..199 frames "
+        "(000000.npy, 000001.npy, 000002.npy, ... (2 more); counted in meta.json)")
 
 
 def test_zero_std_is_refused_before_writing(dataset, tmp_path, monkeypatch):

@@ -637,21 +637,22 @@ def test_id_in_two_splits_is_kept_in_its_first_split_and_reported_in_skip_mode(d
         assert f"{dataset}/train.txt:1" in problem.reason
 
 
-def test_empty_split_fails_and_is_reported_in_skip_mode(dataset: Path) -> None:
+def test_empty_split_fails_in_both_modes(dataset: Path) -> None:
+    """A split without items is bad input for the whole dataset: the stages after it need every split."""
     (dataset / "val.txt").write_text("\n")
-    err = pytest.raises(DatasetError, read_splits, dataset, HUMANML3D).value
-    assert [str(p) for p in err.problems] == [f"{dataset}/val.txt: split 'val' is empty: the file lists no clip id"]
-    data = read_splits(dataset, HUMANML3D, on_error="skip")
-    assert data["val"].items == [] and [p.kind for p in data["val"].skipped] == [EMPTY_SPLIT]
+    for mode in ("fail", "skip"):
+        err = pytest.raises(DatasetError, read_splits, dataset, HUMANML3D, on_error=mode).value
+        assert [str(p) for p in err.problems] == [f"{dataset}/val.txt: split 'val' is empty: the file lists no clip id"]
+        assert err.problems[0].kind == EMPTY_SPLIT
 
 
-def test_split_emptied_by_skipping_is_reported(dataset: Path) -> None:
+def test_split_emptied_by_skipping_fails_with_what_emptied_it(dataset: Path) -> None:
     _truncate(dataset / "new_joints" / "000004.npy")  # val's only clip
-    data = read_splits(dataset, HUMANML3D, on_error="skip")
-    assert [(p.kind, p.path) for p in data["val"].skipped] == [
+    err = pytest.raises(DatasetError, read_splits, dataset, HUMANML3D, on_error="skip").value
+    assert [(p.kind, p.path) for p in err.problems] == [
         (UNREADABLE, f"{dataset}/new_joints/000004.npy"), (EMPTY_SPLIT, f"{dataset}/val.txt")]
-    assert data["val"].skipped[1].reason == "split 'val' has no item left: 1 problem(s) skipped, 0 clip(s) or " \
-                                            "span(s) filtered by length"
+    assert err.problems[1].reason == "split 'val' has no item left: 1 problem(s) skipped, 0 clip(s) or " \
+                                     "span(s) filtered by length"
 
 
 def _standing(skeleton: Skeleton, scale: float, n_frames: int = 50) -> np.ndarray:
