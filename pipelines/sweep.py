@@ -785,35 +785,68 @@ def check_loop_config(target: SweepTarget, params: dict) -> None:
         raise SweepConfigError(str(err)) from None
 
 
-def run_sweep(target: SweepTarget, params: dict, repo_root: Path, *, callbacks: Sequence[Any] = ()) -> SweepResult:
-    """Sweep ``target`` as ``params['sweep']`` declares; write ``<paths.artifacts>/sweeps/<stage>/``.
+@dataclass(frozen=True)
+class SweepPlan:
+    """A sweep checked before Ray starts (:func:`plan_sweep`): what :func:`run_sweep` runs."""
 
-    Connects to Ray like the runner (an initialised Ray is reused; else ``ray.address`` /
-    ``$RAY_ADDRESS`` / a local cluster). Raises :class:`SweepConfigError` on a bad space or
-    settings, :class:`SweepInterrupted` or :class:`SweepFailed` (nothing written) otherwise.
-    ``callbacks`` are Tune callbacks of a new experiment (a restored one keeps its own).
-    """
+    settings: SweepSettings
+    space: dict[str, Dimension]
+    name: str
+    opts: RayOptions
+    storage: str
+    out_dir: Path
+
+    def describe(self) -> str:
+        """The plan as ``--cfg`` prints it: the space, the ranking, the trials and their resources."""
+        s, o = self.settings, self.opts
+        cpus = o.cpus_per_worker + s.trial_cpus / o.num_workers  # as configured (the driver's share included)
+        lines = [f"sweep {self.name}: {expected_trials(self.space, s.num_samples)} trial(s), ranked by {s.metric} "
+                 f"({s.mode}), scheduler {s.scheduler}",
+                 *(f"  {key}: {dim.kind}({', '.join(map(repr, dim.args))})" for key, dim in self.space.items()),
+                 f"  each trial: {o.num_workers} Ray Train worker(s) x {cpus:g} CPU(s); storage {self.storage}; "
+                 f"outputs {self.out_dir}"]
+        return "\n".join(lines)
+
+
+def plan_sweep(target: SweepTarget, params: dict, repo_root: Path) -> SweepPlan:
+    """Every check that needs no Ray: the shared sections (``ray`` above all), ``sweep.settings``, the space,
+    the stage's params and inputs (its loop config is built once) and the output folder. Raises
+    :class:`SweepConfigError` (or FileNotFoundError for a missing input)."""
     stage = target.stage
-    problems = check_shared(params, ())  # the ray section above all, before Ray starts
+    problems = check_shared(params, ())
     if problems:
         raise SweepConfigError("\n".join(problems))
     sweep = params.get("sweep") or {}
     settings = ranking_settings(SweepSettings.from_dict(sweep.get("settings")), target)
     space = parse_space(stage, sweep.get(stage), params[stage])
-    name = experiment_name(stage, space, settings, params[stage])
     opts = trial_ray_options(params, settings)
     check_loop_config(target, params)
-    storage = ray_storage(params)
-    artifacts = repo_root / params["paths"]["artifacts"] / "sweeps"
-    check_output(artifacts / stage, owner="sweep")
+    out_dir = repo_root / params["paths"]["artifacts"] / "sweeps" / stage
+    check_output(out_dir, owner="sweep")
+    return SweepPlan(settings, space, experiment_name(stage, space, settings, params[stage]), opts,
+                     ray_storage(params), out_dir)
+
+
+def run_sweep(target: SweepTarget, params: dict, repo_root: Path, *, callbacks: Sequence[Any] = ()) -> SweepResult:
+    """Sweep ``target`` as ``params['sweep']`` declares; write ``<paths.artifacts>/sweeps/<stage>/``.
+
+    Checks everything :func:`plan_sweep` checks first, then connects to Ray like the runner (an
+    initialised Ray is reused; else ``ray.address`` / ``$RAY_ADDRESS`` / a local cluster). Raises
+    :class:`SweepConfigError` on a bad space or settings, :class:`SweepInterrupted` or
+    :class:`SweepFailed` (nothing written) otherwise. ``callbacks`` are Tune callbacks of a new
+    experiment (a restored one keeps its own).
+    """
+    plan = plan_sweep(target, params, repo_root)
+    settings, space, opts, storage = plan.settings, plan.space, plan.opts, plan.storage
     started = ensure_ray(opts.address, opts.runtime_env)
     try:
         concurrency = max_concurrent(settings, opts)  # before the prerequisite: a trial must fit
         overrides = {}
         if target.prerequisite is not None:
-            overrides = target.prerequisite(params, artifacts / f"{stage}-prerequisites", storage)
+            prerequisites = plan.out_dir.parent / f"{target.stage}-prerequisites"
+            overrides = target.prerequisite(params, prerequisites, storage)
         job = SweepJob(target, params, overrides, opts, storage)
-        analysis, restored = _fit(job, space, settings, name, concurrency, callbacks)
+        analysis, restored = _fit(job, space, settings, plan.name, concurrency, callbacks)
     finally:
         if started:
             ray.shutdown()
@@ -822,5 +855,5 @@ def run_sweep(target: SweepTarget, params: dict, repo_root: Path, *, callbacks: 
     best = best_row(table, settings.metric, settings.mode)
     if best is None:
         raise SweepFailed(f"no trial reported {settings.metric!r}", table)
-    write_outputs(artifacts / stage, stage, table, best, space, settings, analysis.experiment_path)
-    return SweepResult(artifacts / stage, analysis.experiment_path, settings.metric, table, best, restored)
+    write_outputs(plan.out_dir, target.stage, table, best, space, settings, analysis.experiment_path)
+    return SweepResult(plan.out_dir, analysis.experiment_path, settings.metric, table, best, restored)

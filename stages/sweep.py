@@ -13,6 +13,9 @@ Trials are ranked by the stage's validation metric (``train_vae``: ``val_MPJPE_m
 checked and one trial must fit on the cluster. Writes ``artifacts/sweeps/<stage>/``
 (results.parquet, results.md, best_params.yaml).
 
+``--cfg`` (anywhere after the stage) runs every check that needs no Ray (params, space, settings,
+inputs, output folder), prints the plan and exits without starting Ray.
+
 Exit status:
 
 - 0: the sweep finished (failed trials are rows of the table);
@@ -29,7 +32,7 @@ import sys
 from collections.abc import Sequence
 from typing import Any
 
-from pipelines.cli import HELP_FLAGS
+from pipelines.cli import CFG_FLAG, HELP_FLAGS
 from pipelines.config import REPO_ROOT, ConfigError, load_params
 from pipelines.sweep import (
     ERROR,
@@ -38,10 +41,11 @@ from pipelines.sweep import (
     SweepResult,
     SweepTarget,
     markdown_table,
+    plan_sweep,
     run_sweep,
 )
 
-USAGE = "usage: python -m stages.sweep <stage> [key=value ...]"
+USAGE = "usage: python -m stages.sweep <stage> [key=value ...] [--cfg]"
 
 
 def load_target(stage: str, params: dict[str, Any]) -> SweepTarget:
@@ -77,9 +81,12 @@ def main(argv: Sequence[str] | None = None) -> None:
     if not argv or "=" in argv[0] or argv[0].startswith("-"):
         sys.stderr.write(USAGE + "\n")
         sys.exit(2)
-    stage, overrides = argv[0], argv[1:]
+    stage, overrides = argv[0], [arg for arg in argv[1:] if arg != CFG_FLAG]
     try:
         params = load_params(overrides)
+        if CFG_FLAG in argv:
+            print(plan_sweep(load_target(stage, params), params, REPO_ROOT).describe())
+            return
         result = run_sweep(load_target(stage, params), params, REPO_ROOT)
     except (ConfigError, SweepConfigError) as err:
         sys.stderr.write(f"sweep {stage}: {err}\n")

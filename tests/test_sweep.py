@@ -608,6 +608,29 @@ def test_bad_ray_settings_exit_2_before_ray_starts(monkeypatch: pytest.MonkeyPat
                    "ray.use_gpu: expected one of ['auto', True, False], got 'maybe'"]
 
 
+def test_cfg_prints_the_plan_without_starting_ray(monkeypatch: pytest.MonkeyPatch,
+                                                  capsys: pytest.CaptureFixture) -> None:
+    """``--cfg``: every check that needs no Ray, then the plan (space, ranking, trials, resources); exit 0."""
+    import pipelines.sweep
+    from stages import sweep
+
+    monkeypatch.setattr(pipelines.sweep, "ensure_ray", _no_ray)
+    params = compose_params(["scale=smoke"])
+    params["sweep"]["settings"]["num_samples"] = 3
+    params["sweep"]["train_vae"] = {"lr": "grid([0.001, 0.003])", "loop": {"max_steps": 20}}
+    monkeypatch.setattr(sweep, "load_params", lambda argv: params)
+    sweep.main(["train_vae", "--cfg"])
+    lines = capsys.readouterr().out.splitlines()[-4:]  # after the smoke profile's in-process notice
+    assert lines[0].endswith(": 6 trial(s), ranked by val_MPJPE_mm (min), scheduler asha")
+    assert lines[1:3] == ["  lr: grid([0.001, 0.003])", "  loop.max_steps: fixed(20)"]
+    assert lines[3].startswith(f"  each trial: 1 Ray Train worker(s) x {params['ray']['cpus_per_worker']:g} CPU(s)")
+    params["sweep"]["settings"]["num_samples"] = 0
+    with pytest.raises(SystemExit) as exc:
+        sweep.main(["train_vae", "--cfg"])
+    assert exc.value.code == 2 and "sweep.settings.num_samples: expected an integer >= 1, got 0" in \
+        capsys.readouterr().err
+
+
 def test_missing_feature_store_exits_1_before_any_work(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
     import pipelines.sweep
 
