@@ -9,6 +9,7 @@ outputs, and the same command then resumes and finishes it.
 
 from __future__ import annotations
 
+import copy
 import json
 import math
 import os
@@ -608,14 +609,16 @@ def test_bad_ray_settings_exit_2_before_ray_starts(monkeypatch: pytest.MonkeyPat
                    "ray.use_gpu: expected one of ['auto', True, False], got 'maybe'"]
 
 
-def test_cfg_prints_the_plan_without_starting_ray(monkeypatch: pytest.MonkeyPatch,
+def test_cfg_prints_the_plan_without_starting_ray(small_store: dict[str, Any], tmp_path: Path,
+                                                  monkeypatch: pytest.MonkeyPatch,
                                                   capsys: pytest.CaptureFixture) -> None:
-    """``--cfg``: every check that needs no Ray, then the plan (space, ranking, trials, resources); exit 0."""
+    """``--cfg``: every check that needs no Ray (the feature store included), then the plan; exit 0."""
     import pipelines.sweep
     from stages import sweep
 
     monkeypatch.setattr(pipelines.sweep, "ensure_ray", _no_ray)
-    params = compose_params(["scale=smoke"])
+    params = copy.deepcopy(small_store)
+    params["paths"]["artifacts"] = str(tmp_path / "artifacts")
     params["sweep"]["settings"]["num_samples"] = 3
     params["sweep"]["train_vae"] = {"lr": "grid([0.001, 0.003])", "loop": {"max_steps": 20}}
     monkeypatch.setattr(sweep, "load_params", lambda argv: params)
