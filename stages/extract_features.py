@@ -154,12 +154,18 @@ def _problem_dicts(problems: Sequence[Problem]) -> list[dict[str, str]]:
     return [asdict(p) for p in problems]
 
 
-def skip_summary(problems: Sequence[Problem], skipped_json: Path, shown: int = 3) -> str:
-    """Console lines of skip mode: a header naming ``skipped_json``, then per kind of problem its
-    count and first few files (``file`` or ``file:line``)."""
+def files_by_kind(problems: Sequence[Problem]) -> dict[str, list[str]]:
+    """The problems' file names (``file`` or ``file:line``), grouped by kind in order of first appearance."""
     by_kind: dict[str, list[str]] = defaultdict(list)
     for problem in problems:
         by_kind[problem.kind].append(Path(problem.path).name)
+    return by_kind
+
+
+def skip_summary(problems: Sequence[Problem], skipped_json: Path, shown: int = 3) -> str:
+    """Console lines of skip mode: a header naming ``skipped_json``, then per kind of problem its
+    count and first few files (``file`` or ``file:line``)."""
+    by_kind = files_by_kind(problems)
     lines = [f"extract_features: data.on_error=skip left out {len(problems)} problem(s); "
              f"all of them in {skipped_json}"]
     for kind, names in by_kind.items():
@@ -180,12 +186,9 @@ def fail_summary(err: DatasetError, shown: int = 20) -> str:
     """The error of fail mode: its first ``shown`` problems, then how many there are of each kind."""
     if len(err.problems) <= shown:
         return str(err)
-    kinds: dict[str, int] = defaultdict(int)
-    for problem in err.problems:
-        kinds[problem.kind] += 1
     lines = str(err).splitlines()[: shown + 1]
     lines.append(f"  ... and {len(err.problems) - shown} more; by kind: "
-                 + ", ".join(f"{kind} {count}" for kind, count in kinds.items()))
+                 + ", ".join(f"{kind} {len(names)}" for kind, names in files_by_kind(err.problems).items()))
     return "\n".join(lines)
 
 
