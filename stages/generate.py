@@ -551,9 +551,21 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def attach_dashed_values(argv: Sequence[str]) -> list[str]:
+    """``--segment -5:60=TEXT`` as ``--segment=-5:60=TEXT``: argparse reads a value starting with ``-`` and
+    not a plain number as an option, and would report "expected one argument" instead of the range error."""
+    out: list[str] = []
+    for arg in argv:
+        if out and out[-1] == "--segment" and re.match(r"-\d", arg):
+            out[-1] = f"--segment={arg}"
+        else:
+            out.append(arg)
+    return out
+
+
 def main(argv: Sequence[str] | None = None) -> None:
     parser = build_parser()
-    args, overrides = parser.parse_known_args(argv)
+    args, overrides = parser.parse_known_args(attach_dashed_values(sys.argv[1:] if argv is None else argv))
     unknown = [arg for arg in overrides if arg.startswith("-")]
     if unknown:
         parser.error(f"unrecognized arguments: {' '.join(unknown)}")

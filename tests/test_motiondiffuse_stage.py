@@ -365,6 +365,8 @@ def test_bad_segments_are_named(specs: list[str], message: str) -> None:
     (["--model", "mld"], "no prompt: give --text"),
     (["--model", "mld", "--segment", "0:120=walks", "--part", "whole=walks"], "only --model motiondiffuse"),
     (["--model", "motiondiffuse", "--part", "hands=waves"], "unknown body part 'hands'"),
+    (["--model", "motiondiffuse", "--segment", "-5:60=walks", "--segment", "60:120=runs"],
+     r"--segment '-5:60=walks': frames [-5, 60) are outside"),
 ])
 def test_generate_cli_errors_are_one_line_exit_1(argv: list[str], message: str,
                                                  capsys: pytest.CaptureFixture[str]) -> None:
@@ -374,6 +376,14 @@ def test_generate_cli_errors_are_one_line_exit_1(argv: list[str], message: str,
     code = exit_info.value.code  # sys.exit(message): printed to stderr, exit status 1
     assert isinstance(code, str) and code.startswith("generate: ") and message in code and "\n" not in code
     assert capsys.readouterr().err == ""  # no argparse usage block
+
+
+def test_a_negative_segment_start_is_the_segment_s_value() -> None:
+    """argparse would read ``-5:60=walks`` as an option; only a value after ``--segment`` that starts with a
+    digit is attached, so a missing value stays argparse's error and other options are untouched."""
+    assert generate.attach_dashed_values(["--segment", "-5:60=walks", "--seed", "-1"]) == [
+        "--segment=-5:60=walks", "--seed", "-1"]
+    assert generate.attach_dashed_values(["--segment", "--out", "x.gif"]) == ["--segment", "--out", "x.gif"]
 
 
 def test_generate_cli_rejects_a_mistyped_option(capsys: pytest.CaptureFixture[str]) -> None:
