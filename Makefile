@@ -22,7 +22,8 @@ $(STAMP): pyproject.toml
 
 setup: $(STAMP)
 
-repro: setup  ## run the whole DVC pipeline on the configured dataset (default: embedded)
+repro: setup  ## check every stage's params (seconds), then run the whole DVC pipeline on the configured dataset
+	$(BIN)/python -m pipelines.preflight
 	$(BIN)/dvc repro
 
 test: setup  ## lint, then the whole test suite
@@ -36,8 +37,9 @@ test-fast: setup  ## lint, then the tests not marked slow (no Ray, training or s
 lint: setup
 	$(BIN)/ruff check .
 
-params: setup  ## re-compose params.yaml from conf/ (e.g. make params ARGS="scale=smoke")
+params: setup  ## re-compose params.yaml from conf/ (e.g. make params ARGS="scale=smoke"), then check every stage's params
 	$(BIN)/python -m pipelines.config $(ARGS)
+	$(BIN)/python -m pipelines.preflight
 
 push: setup  ## upload the outputs that dvc.lock records to the DVC remote (README, "Versions")
 	$(BIN)/dvc push $(ARGS)

@@ -41,6 +41,27 @@ def _null_or_count(section: Mapping[str, Any], key: str, where: str) -> object:
     return section[key] is None or check_number(section, key, where, low=1, integer=True)
 
 
+#: ``HOST:PORT`` or ``ray://HOST:PORT`` (an IPv6 host in brackets), the forms ``ray.init`` connects to
+RAY_HOST_PORT = re.compile(r"(?:ray://)?(?:\[[0-9A-Fa-f:.]+\]|[^\s:/\[\]]+):(\d{1,5})")
+
+
+def check_ray_address(section: Mapping[str, Any], key: str, where: str) -> None:
+    """null (a local Ray), ``auto``, ``local``, ``[ray://]HOST:PORT`` with a port in 1..65535, or another
+    ``scheme://`` that Ray resolves itself (not http(s), which is the dashboard's, not a cluster's)."""
+    value = section[key]
+    if value is None or value in ("auto", "local"):
+        return
+    if isinstance(value, str):
+        match = RAY_HOST_PORT.fullmatch(value)
+        if match and 1 <= int(match.group(1)) <= 65535:
+            return
+        scheme = value.partition("://")[0]
+        if "://" in value and scheme not in ("ray", "http", "https"):
+            return
+    raise ConfigError(f"{where}.{key}: expected null, 'auto', 'local' or HOST:PORT (e.g. 10.0.0.1:6379, "
+                      f"ray://10.0.0.1:10001), got {value!r}")
+
+
 #: Checks of the sections several stages share, one per dotted key: ``check(section, key, where)``
 #: raises a ConfigError naming the key, its value and what is allowed. A stage's own section is
 #: checked by the stage (the ``checks`` of :func:`run_main`).
@@ -60,7 +81,7 @@ SHARED_KEYS: dict[str, Callable[[Mapping[str, Any], str, str], Any]] = {
     "features.text_encoder_path": partial(check_type, kind=str, nullable=True),
     "features.max_text_tokens": partial(check_number, low=1, integer=True),
     "features.text_batch_size": partial(check_number, low=1, integer=True),
-    "ray.address": partial(check_type, kind=str, nullable=True),
+    "ray.address": check_ray_address,
     "ray.num_workers": partial(check_number, low=0, integer=True),
     "ray.use_gpu": partial(check_choice, choices=("auto", True, False)),
     "ray.cpus_per_worker": partial(check_number, low=0, low_open=True),

@@ -239,6 +239,26 @@ def test_null_or_count_keys_take_null_or_a_positive_integer(value, errors):
     assert check_shared(params, ["sample"]) == errors
 
 
+@pytest.mark.parametrize("address", [None, "auto", "local", "10.0.0.1:6379", "headnode:6379", "[::1]:6379",
+                                     "ray://10.0.0.1:10001", "anyscale://my-cluster"])
+def test_ray_address_takes_the_forms_ray_connects_to(address):
+    params = load_params([])
+    params["ray"]["address"] = address
+    assert check_shared(params, ["ray"]) == []
+
+
+@pytest.mark.parametrize("address", ["headnode", "headnode:", ":6379", "h:0", "h:65536", "ray://h", "http://h:8265",
+                                     "10.0.0.1 :6379", 6379])
+def test_a_malformed_ray_address_is_named_before_ray_starts(address):
+    """Without a port (or with one out of range, or the dashboard's http:// address) Ray would fail later, with
+    a message that does not name the key."""
+    params = load_params([])
+    params["ray"]["address"] = address
+    assert check_shared(params, ["ray"]) == [
+        "ray.address: expected null, 'auto', 'local' or HOST:PORT (e.g. 10.0.0.1:6379, ray://10.0.0.1:10001), "
+        f"got {address!r}"]
+
+
 # --------------------------------------------------------------------------- the real command line
 
 
