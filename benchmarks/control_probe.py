@@ -4,18 +4,19 @@
 
 Trains in-process into ``/tmp/probe/cn_<name>`` on top of the student, teacher, VAE and features
 under ``$ARTIFACTS`` (symlinked); with the name ``existing`` it skips training and probes
-``$ARTIFACTS/train_controlnet``. Then, on the first ``$ITEMS`` test motions (first caption, full
-length, seed 0, ``sample.motionlcm_guidance``), pelvis hints at ``$DENSITY``: the control errors
-of MotionLCM-1 without control, of the ControlNet (again with each step count of ``LCM_STEPS``,
-e.g. "2 4": MotionLCM's multistep sampling, fresh noise between steps from seed 1; with ``HINT_ABLATION=1`` also
-given no hint and given the next motion's hint, still scored against each motion's own path: what it
-owes to the hint), and of the noise refinement at several (steps, lr) settings (``REFINE_SETTINGS``,
-default "5:0.1 10:0.1 ..."), plus batch-1 seconds per motion of the ControlNet with 0/10/20/30
-refinement steps (``REFINE=0`` skips the refinement rows and timings).
-Each row also gets the T2M evaluator's FID against the same items' real motions, R@3 (groups
-of 32), Diversity (``ITEMS=all`` for the whole test split) and the physical metrics; ``PROJECT=1``
-adds each row again after the root projection (:mod:`data.root_projection`). Prints one JSON line
-per measurement. Used for docs/controlnet.md.
+``$ARTIFACTS/train_controlnet``; with ``TRAIN=0`` it scores the ControlNet an earlier probe of that
+name trained, if there is one (e.g. again with another ``ITEMS``). Then, on the first ``$ITEMS``
+test motions (first caption, full length, seed 0, ``sample.motionlcm_guidance``), pelvis hints at
+``$DENSITY``: the control errors of MotionLCM-1 without control, of the ControlNet (again with each
+step count of ``LCM_STEPS``, e.g. "2 4": MotionLCM's multistep sampling, fresh noise between steps
+from seed 1; with ``HINT_ABLATION=1`` also given no hint and given the next motion's hint, still
+scored against each motion's own path: what it owes to the hint), and of the noise refinement at
+several (steps, lr) settings (``REFINE_SETTINGS``, default "5:0.1 10:0.1 ..."), plus batch-1 seconds
+per motion of the ControlNet with 0/10/20/30 refinement steps (``REFINE=0`` skips the refinement
+rows and timings). Each row also gets the T2M evaluator's FID against the same items' real motions,
+R@3 (groups of 32), Diversity (``ITEMS=all`` for the whole test split) and the physical metrics;
+``PROJECT=1`` adds each row again after the root projection (:mod:`data.root_projection`). Prints
+one JSON line per measurement. Used for docs/controlnet.md.
 """
 import json
 import os
@@ -52,7 +53,7 @@ source = Path(os.environ.get("ARTIFACTS", "artifacts")).resolve()
 art = source if name == "existing" else Path(f"/tmp/probe/cn_{name}")
 params = load_params([f"paths.artifacts={art}", f"features.out={source / 'features'}",
                       "paths.ray_storage=/tmp/probe/ray", "ray.num_workers=0", *overrides])
-if name != "existing":
+if name != "existing" and not (os.environ.get("TRAIN") == "0" and (art / "train_controlnet").is_dir()):
     art.mkdir(parents=True, exist_ok=True)
     for d in ("train_vae", "train_mld", "distill_lcm"):
         if not (art / d).exists():
