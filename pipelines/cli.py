@@ -17,6 +17,7 @@ import re
 import sys
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from functools import partial
+from importlib.util import find_spec
 from pathlib import Path
 from typing import Any
 
@@ -46,8 +47,9 @@ RAY_HOST_PORT = re.compile(r"(?:ray://)?(?:\[[0-9A-Fa-f:.]+\]|[^\s:/\[\]]+):(\d{
 
 
 def check_ray_address(section: Mapping[str, Any], key: str, where: str) -> None:
-    """null (a local Ray), ``auto``, ``local``, ``[ray://]HOST:PORT`` with a port in 1..65535, or another
-    ``scheme://`` that Ray resolves itself (not http(s), which is the dashboard's, not a cluster's)."""
+    """null (a local Ray), ``auto``, ``local``, ``[ray://]HOST:PORT`` with a port in 1..65535, or
+    ``scheme://...`` where ``scheme`` is an installed module: ``ray.init`` imports it for its client
+    builder (a provider's package). Not http(s): that is the dashboard's address, not a cluster's."""
     value = section[key]
     if value is None or value in ("auto", "local"):
         return
@@ -55,8 +57,8 @@ def check_ray_address(section: Mapping[str, Any], key: str, where: str) -> None:
         match = RAY_HOST_PORT.fullmatch(value)
         if match and 1 <= int(match.group(1)) <= 65535:
             return
-        scheme = value.partition("://")[0]
-        if "://" in value and scheme not in ("ray", "http", "https"):
+        scheme, sep, _ = value.partition("://")
+        if sep and scheme.isidentifier() and scheme not in ("ray", "http", "https") and find_spec(scheme):
             return
     raise ConfigError(f"{where}.{key}: expected null, 'auto', 'local' or HOST:PORT (e.g. 10.0.0.1:6379, "
                       f"ray://10.0.0.1:10001), got {value!r}")

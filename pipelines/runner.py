@@ -189,6 +189,8 @@ class LoopSettings:
         ``where`` names the group in errors (e.g. ``train_vae.loop``).
         """
         names = [f.name for f in fields(cls)]
+        if not isinstance(section, Mapping):
+            raise ValueError(f"{where}: expected a mapping with keys {names}, got {section!r}")
         unknown = sorted(set(section) - set(names))
         missing = [name for name in names if name not in section]
         if unknown or missing:

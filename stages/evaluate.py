@@ -66,7 +66,7 @@ def eval_config(section: dict[str, Any]) -> EvalConfig:
 
 def check_section(params: dict[str, Any]) -> None:
     """The ``evaluate`` section checked before any work; a ValueError naming the key, its value and what is allowed."""
-    cfg = params["evaluate"]
+    cfg = check_type(params, "evaluate", "", kind=dict)
     check_fields({key: value for key, value in cfg.items() if key != "samples"}, EvalConfig, "evaluate")
     for key in ("replications", "group_size", "unit_length"):
         check_number(cfg, key, "evaluate", low=1, integer=True)

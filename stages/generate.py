@@ -553,11 +553,12 @@ def build_parser() -> argparse.ArgumentParser:
 
 def attach_dashed_values(argv: Sequence[str]) -> list[str]:
     """``--segment -5:60=TEXT`` as ``--segment=-5:60=TEXT``: argparse reads a value starting with ``-`` and
-    not a plain number as an option, and would report "expected one argument" instead of the range error."""
+    not a plain number as an option, and would report "expected one argument" instead of the range error.
+    Also for the option's unambiguous abbreviations (``--seg``), which argparse accepts."""
     out: list[str] = []
     for arg in argv:
-        if out and out[-1] == "--segment" and re.match(r"-\d", arg):
-            out[-1] = f"--segment={arg}"
+        if out and out[-1].startswith("--seg") and "--segment".startswith(out[-1]) and re.match(r"-\d", arg):
+            out[-1] = f"{out[-1]}={arg}"
         else:
             out.append(arg)
     return out

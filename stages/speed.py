@@ -25,7 +25,7 @@ from data.skeleton import get_skeleton
 from models.generator import Generator
 from pipelines.checkpoint import skipped
 from pipelines.cli import artifacts_dir, repo_path, run_main
-from pipelines.config import check_fields, check_keys, check_number
+from pipelines.config import check_fields, check_keys, check_number, check_type
 from pipelines.evaluation import EvalConfig, draw
 from pipelines.registry import FAMILIES, EvalContext
 from pipelines.speed import side_by_side
@@ -45,6 +45,7 @@ def timing_section(params: dict[str, Any]) -> dict[str, Any]:
 def check_section(params: dict[str, Any]) -> None:
     """The ``speed`` section (and ``evaluate``'s fields) checked before any work; a ValueError naming the
     key, its value and what is allowed."""
+    check_type(params, "evaluate", "", kind=dict)
     check_fields(timing_section(params), EvalConfig, "evaluate")
     cfg = check_keys(params["speed"], "speed", ("rows", "rounds"))
     rows = cfg["rows"]

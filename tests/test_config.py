@@ -240,15 +240,17 @@ def test_null_or_count_keys_take_null_or_a_positive_integer(value, errors):
 
 
 @pytest.mark.parametrize("address", [None, "auto", "local", "10.0.0.1:6379", "headnode:6379", "[::1]:6379",
-                                     "ray://10.0.0.1:10001", "anyscale://my-cluster"])
+                                     "ray://10.0.0.1:10001", "numpy://a-provider-module"])
 def test_ray_address_takes_the_forms_ray_connects_to(address):
+    """``scheme://`` passes when the scheme is an installed module (``ray.init`` imports it for a provider's
+    client builder); numpy stands in for such a package."""
     params = load_params([])
     params["ray"]["address"] = address
     assert check_shared(params, ["ray"]) == []
 
 
 @pytest.mark.parametrize("address", ["headnode", "headnode:", ":6379", "h:0", "h:65536", "ray://h", "http://h:8265",
-                                     "10.0.0.1 :6379", 6379])
+                                     "HTTP://h:8265", "RAY://h:10001", "nosuchprovider://c", "10.0.0.1 :6379", 6379])
 def test_a_malformed_ray_address_is_named_before_ray_starts(address):
     """Without a port (or with one out of range, or the dashboard's http:// address) Ray would fail later, with
     a message that does not name the key."""

@@ -384,6 +384,7 @@ def test_a_negative_segment_start_is_the_segment_s_value() -> None:
     assert generate.attach_dashed_values(["--segment", "-5:60=walks", "--seed", "-1"]) == [
         "--segment=-5:60=walks", "--seed", "-1"]
     assert generate.attach_dashed_values(["--segment", "--out", "x.gif"]) == ["--segment", "--out", "x.gif"]
+    assert generate.attach_dashed_values(["--seg", "-5:60=walks", "--se", "-1"]) == ["--seg=-5:60=walks", "--se", "-1"]
 
 
 def test_generate_cli_rejects_a_mistyped_option(capsys: pytest.CaptureFixture[str]) -> None:

@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import os
+import sys
+
 import pytest
 
 from pipelines import preflight
@@ -10,7 +13,7 @@ from pipelines.config import REPO_ROOT
 
 def test_every_dvc_stage_is_a_stage_module_run_with_its_arguments() -> None:
     commands = preflight.stage_commands()
-    assert len(commands) == 21
+    assert {"make_dataset", "train_controlnet", "eval_motionlcm-control", "report"} <= set(commands)
     assert commands["make_dataset"] == ("stages.make_dataset", [])
     assert commands["eval_motionlcm-control"] == ("stages.evaluate", ["motionlcm-control"])
     assert all((REPO_ROOT / (module.replace(".", "/") + ".py")).is_file() for module, _ in commands.values())
@@ -25,7 +28,30 @@ def test_a_command_other_than_a_stage_module_is_refused(tmp_path) -> None:
 
 def test_the_committed_params_pass(capsys: pytest.CaptureFixture[str]) -> None:
     preflight.main([])
-    assert capsys.readouterr().out == "preflight: the params of all 21 stages pass their checks\n"
+    count = len(preflight.stage_commands())
+    assert capsys.readouterr().out == f"preflight: the params of all {count} stages pass their checks\n"
+
+
+def test_a_crashing_check_is_one_problem_and_leaves_argv_and_environment(tmp_path, monkeypatch) -> None:
+    """A stage whose checks raise (a bug) is reported like the others instead of hiding them; what the
+    module run changed in ``sys.argv`` and ``os.environ`` is undone."""
+    (tmp_path / "crashing_stage.py").write_text("import os, sys\nos.environ['PREFLIGHT_PROBE'] = '1'\n"
+                                                "raise TypeError(f'boom {sys.argv[1:]}')\n")
+    (tmp_path / "exiting_stage.py").write_text("import sys\nsys.exit('exiting: a.b: bad\\nexiting: c: worse')\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    argv = list(sys.argv)
+    assert preflight.stage_problems("crash", "crashing_stage", ["x"], ["k=v"]) == [
+        "crash: its checks crashed (TypeError: boom ['x', 'k=v', '--cfg'])"]
+    assert preflight.stage_problems("exit", "exiting_stage", [], []) == ["exiting: a.b: bad", "exiting: c: worse"]
+    assert sys.argv == argv and "PREFLIGHT_PROBE" not in os.environ
+
+
+def test_help_and_unknown_options(capsys: pytest.CaptureFixture[str]) -> None:
+    preflight.main(["--help"])
+    assert capsys.readouterr().out.startswith("Every pipeline stage's params checked in one process")
+    with pytest.raises(SystemExit) as exit_info:
+        preflight.main(["--cfg"])
+    assert exit_info.value.code == "preflight: unknown option(s) ['--cfg']; it takes key=value overrides and --help"
 
 
 def test_each_problem_is_named_once_with_the_stages_it_stops() -> None:
@@ -47,3 +73,18 @@ def test_a_problem_of_every_stage_says_so() -> None:
         preflight.main(["train_vae.lrr=1"])
     assert str(exit_info.value.code).splitlines()[1] == (
         "  unknown config key 'train_vae.lrr' in 'train_vae.lrr=1' (use +train_vae.lrr=... to add one) (every stage)")
+
+
+@pytest.mark.parametrize(("override", "line"), [
+    ("train_vae.loop=5", "  train_vae.loop: expected a mapping with keys ['seed', 'batch_size', 'max_steps', "
+     "'grad_clip', 'lr_schedule', 'warmup_steps', 'min_lr_ratio', 'log_every', 'num_data_workers', "
+     "'length_buckets'], got 5 (train_vae)"),
+    ("evaluate=5", "  evaluate: expected a mapping, got 5 (eval_real, eval_baselines, eval_vae, eval_mld, "
+     "eval_motionlcm, eval_motionlcm-control, eval_emdm, eval_emdm-action, eval_motiondiffuse, eval_speed)"),
+])
+def test_a_scalar_where_a_group_belongs_is_named_not_a_crash(override: str, line: str) -> None:
+    """A loop group or the evaluate section given as a number: the stages' checks said so with a TypeError or
+    an AttributeError before."""
+    with pytest.raises(SystemExit) as exit_info:
+        preflight.main([override])
+    assert str(exit_info.value.code).splitlines()[1:] == [line]
