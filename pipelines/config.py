@@ -109,6 +109,14 @@ def check_choice(cfg: Mapping[str, Any], key: str, where: str, *, choices: Seque
     return value
 
 
+def check_heads(cfg: Mapping[str, Any], key: str, where: str, *, width: int) -> None:
+    """``cfg[key]``, a number of attention heads, checked to be an integer >= 1 that divides the network's
+    ``width``; a ConfigError naming ``<where>.<key>`` otherwise (torch would assert when the network is built)."""
+    heads = int(check_number(cfg, key, where, low=1, integer=True))
+    if width % heads:
+        raise ConfigError(f"{dotted(where, key)}: width {width} must be divisible by {key} {heads}")
+
+
 def check_type(cfg: Mapping[str, Any], key: str, where: str, *, kind: type, nullable: bool = False) -> Any:
     """``cfg[key]`` checked to be a ``kind`` (``str``, ``bool``, ``dict``, ``list``) or, if ``nullable``, None."""
     value = cfg[key]

@@ -28,7 +28,7 @@ from models.emdm import (
 )
 from pipelines.checkpoint import load_final_model
 from pipelines.cli import artifacts_dir, repo_path
-from pipelines.config import check_fields, check_number
+from pipelines.config import check_fields, check_heads, check_number
 from pipelines.feature_store import FeatureStore
 from pipelines.recogniser import ActionClips, action_classes, labelled_items, missing_actions
 from pipelines.runner import Components, StepContext, TrainSpec
@@ -172,6 +172,8 @@ def check_section(cfg: dict[str, Any], section: str = "train_emdm") -> None:
     if unknown or missing:
         raise ValueError(f"{section}.model: unknown key(s) {unknown}, missing key(s) {missing}")
     check_fields(model, EMDMConfig, f"{section}.model")  # types and choices (the sizes' ranges: EMDMConfig)
+    check_heads(model, "heads", f"{section}.model", width=model["width"])
+    check_heads(model, "d_heads", f"{section}.model", width=model["d_width"])
 
 
 def model_config(cfg: dict[str, Any], feature_dim: int, text_dim: int, num_actions: int = 0,
@@ -191,9 +193,6 @@ def model_config(cfg: dict[str, Any], feature_dim: int, text_dim: int, num_actio
         checked = EMDMConfig(**model)
     except (TypeError, ValueError) as err:
         raise ValueError(f"{section}.model: {err}") from err
-    if checked.width % checked.heads or checked.d_width % checked.d_heads:
-        raise ValueError(f"{section}.model: width {checked.width} / d_width {checked.d_width} must be divisible "
-                         f"by heads {checked.heads} / d_heads {checked.d_heads}")
     names = {f.name for f in fields(EMDMConfig)} - {"guidance"}
     return {f.name: getattr(checked, f.name) for f in fields(EMDMConfig) if f.name in names}
 

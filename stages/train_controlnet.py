@@ -24,7 +24,7 @@ from models.controlnet import ControlConfig, MotionControlNet, controlnet_loss
 from models.vae import LatentDistribution
 from pipelines.checkpoint import load_final_model
 from pipelines.cli import artifacts_dir
-from pipelines.config import ConfigError, check_fields, check_keys, check_number
+from pipelines.config import ConfigError, check_fields, check_heads, check_keys, check_number
 from pipelines.feature_store import FeatureStore
 from pipelines.latent_cache import collate_words, control_dataset
 from pipelines.mld_family import load_mld, load_motionlcm, load_vae
@@ -92,6 +92,7 @@ def check_section(params: dict[str, Any]) -> None:
     check_fields(cfg["encoder"], ControlConfig, f"{SECTION}.encoder",
                  exclude=("joints_num", "hint_mean", "hint_std", "train_joints"))
     check_number(cfg["encoder"], "patch_frames", f"{SECTION}.encoder", low=1, integer=True)
+    check_heads(cfg["encoder"], "heads", f"{SECTION}.encoder", width=cfg["encoder"]["dim"])
 
 
 def stage_config(params: dict[str, Any]) -> dict[str, Any]:

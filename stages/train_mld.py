@@ -21,7 +21,7 @@ from models.mld import MLDConfig, MLDDenoiser, mld_loss
 from models.vae import LatentDistribution
 from pipelines.checkpoint import load_final_model
 from pipelines.cli import artifacts_dir, repo_path
-from pipelines.config import check_choice, check_fields, check_keys, check_number, check_type
+from pipelines.config import check_choice, check_fields, check_heads, check_keys, check_number, check_type
 from pipelines.feature_store import FeatureStore
 from pipelines.latent_cache import collate_words, latent_dataset, measure_latent_std
 from pipelines.mld_family import noise_schedule
@@ -68,6 +68,8 @@ def check_section(params: dict[str, Any]) -> None:
     check_number(cfg, "beta_end", SECTION, low=cfg["beta_start"], low_open=True, high=1.0, high_open=True)
     check_number(cfg, "num_train_timesteps", SECTION, low=1, integer=True)
     check_fields(cfg["model"], MLDConfig, f"{SECTION}.model", exclude=DERIVED_MODEL_KEYS)
+    if cfg["model"].get("hidden_dim") is not None:  # else the width is the VAE's latent_dim, checked with the VAE
+        check_heads(cfg["model"], "heads", f"{SECTION}.model", width=cfg["model"]["hidden_dim"])
 
 
 def stage_config(params: dict[str, Any]) -> dict[str, Any]:

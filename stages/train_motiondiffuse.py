@@ -32,7 +32,7 @@ from data.motion_dataset import MotionTextDataset, collate_trimmed_words
 from models.diffusion import lag_moments
 from models.motiondiffuse import MotionDiffuse, MotionDiffuseConfig, training_loss
 from pipelines.cli import repo_path
-from pipelines.config import check_number
+from pipelines.config import check_heads, check_number
 from pipelines.feature_store import FeatureStore
 from pipelines.runner import Components, StepContext, TrainSpec
 from pipelines.stage import TrainingStage, main
@@ -122,9 +122,7 @@ def check_section(cfg: dict[str, Any]) -> None:
     if model["attention"] not in ("linear", "softmax"):
         raise ValueError(f"{SECTION}.model.attention: expected 'linear' or 'softmax', got {model['attention']!r}")
     for key in ("heads", "text_heads"):
-        if model["width"] % model[key]:
-            raise ValueError(f"{SECTION}.model.{key}: width {model['width']} must be divisible by {key} "
-                             f"{model[key]}")
+        check_heads(model, key, f"{SECTION}.model", width=model["width"])
     if cfg["crop_frames"] > model["max_len"]:
         raise ValueError(f"{SECTION}.crop_frames: {cfg['crop_frames']} exceeds model.max_len {model['max_len']} "
                          "(the learned positional table)")

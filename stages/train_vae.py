@@ -20,7 +20,7 @@ import torch
 from data.motion_dataset import MotionTextDataset, collate_trimmed
 from models.vae import MotionVAE, MotionVAEConfig, vae_loss
 from pipelines.cli import repo_path
-from pipelines.config import check_choice, check_fields, check_keys, check_number
+from pipelines.config import check_choice, check_fields, check_heads, check_keys, check_number
 from pipelines.feature_store import FeatureStore
 from pipelines.runner import Components, StepContext, TrainSpec
 from pipelines.stage import TrainingStage, loop_config, main
@@ -66,7 +66,9 @@ def check_section(params: dict[str, Any]) -> None:
     check_number(cfg, "joint_beta", SECTION, low=0.0, low_open=True)
     check_number(cfg, "crop_frames", SECTION, low=1, integer=True)
     check_choice(cfg, "joint_space", SECTION, choices=("global", "root"))
-    check_fields(cfg["model"], MotionVAEConfig, f"{SECTION}.model", exclude=("feature_dim",))
+    model = cfg["model"]
+    check_fields(model, MotionVAEConfig, f"{SECTION}.model", exclude=("feature_dim",))
+    check_heads(model, "heads", f"{SECTION}.model", width=model.get("hidden_dim") or model["latent_dim"])
 
 
 def stage_config(params: dict[str, Any]) -> dict[str, Any]:

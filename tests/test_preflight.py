@@ -88,3 +88,20 @@ def test_a_scalar_where_a_group_belongs_is_named_not_a_crash(override: str, line
     with pytest.raises(SystemExit) as exit_info:
         preflight.main([override])
     assert str(exit_info.value.code).splitlines()[1:] == [line]
+
+
+def test_attention_heads_that_do_not_divide_the_width_are_named_for_every_model() -> None:
+    """torch asserts when the network is built (for the VAE, after the evaluator trained); the checks say it
+    first, naming the key and the width."""
+    with pytest.raises(SystemExit) as exit_info:
+        preflight.main(["train_vae.model.heads=5", "train_mld.model.heads=5", "train_controlnet.encoder.heads=5",
+                        "train_emdm.model.d_heads=3", "train_motiondiffuse.model.text_heads=7",
+                        "train_emdm_action.model.heads=0"])
+    assert str(exit_info.value.code).splitlines()[1:] == [
+        "  train_vae.model.heads: width 64 must be divisible by heads 5 (train_vae)",
+        "  train_mld.model.heads: width 128 must be divisible by heads 5 (train_mld)",
+        "  train_controlnet.encoder.heads: width 64 must be divisible by heads 5 (train_controlnet)",
+        "  train_emdm.model.d_heads: width 64 must be divisible by d_heads 3 (train_emdm)",
+        "  train_emdm_action.model.heads: expected an integer >= 1, got 0 (train_emdm_action)",
+        "  train_motiondiffuse.model.text_heads: width 96 must be divisible by text_heads 7 (train_motiondiffuse)",
+    ]
