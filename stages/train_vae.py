@@ -68,7 +68,7 @@ def check_section(params: dict[str, Any]) -> None:
     check_choice(cfg, "joint_space", SECTION, choices=("global", "root"))
     model = cfg["model"]
     check_fields(model, MotionVAEConfig, f"{SECTION}.model", exclude=("feature_dim",))
-    check_heads(model, "heads", f"{SECTION}.model", width=model.get("hidden_dim") or model["latent_dim"])
+    check_heads(model, "heads", f"{SECTION}.model", width=MotionVAEConfig(**model).width)
 
 
 def stage_config(params: dict[str, Any]) -> dict[str, Any]:
