@@ -21,6 +21,7 @@ import numpy as np
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from data.skeleton import get_skeleton  # noqa: E402
 from pipelines.action_evaluation import action_accuracy, load_recogniser  # noqa: E402
 from pipelines.evaluation import detail, mpjpe_mm  # noqa: E402
 from pipelines.feature_store import FeatureStore  # noqa: E402
@@ -38,6 +39,7 @@ def main(argv: list[str] | None = None) -> None:
     args = parser.parse_args(argv)
     torch.set_num_threads(2)
     store = FeatureStore(Path(args.features))
+    skeleton = get_skeleton(store.meta["skeleton"])
     items = store.split(args.split)
     lengths = np.array([item.length for item in items])
     real = np.zeros((len(items), lengths.max(), store.feature_dim), np.float32)
@@ -51,8 +53,7 @@ def main(argv: list[str] | None = None) -> None:
     for vae in args.vaes:
         recon_normalised = VAEReconstruction(load_vae(Path(vae))).reconstruct(normalised, lengths)
         recon = recon_normalised * store.std + store.mean
-        row = {"MPJPE_mm": mpjpe_mm(real, recon, lengths, store.joints_num),
-               **detail(real, recon, lengths, store.joints_num)}
+        row = {"MPJPE_mm": mpjpe_mm(real, recon, lengths, skeleton), **detail(real, recon, lengths, skeleton)}
         if recogniser is not None and actions:
             row["action_accuracy"] = action_accuracy(
                 recogniser, recon_normalised[which].astype(np.float32), lengths[which], actions)

@@ -112,15 +112,17 @@ def lcm_distillation_loss(
     w = w_range[0] + (w_range[1] - w_range[0]) * torch.rand(b, generator=generator, device=z0.device)
     w_emb = guidance_embedding(w)
     words = {"text_tokens": text_tokens, "text_mask": text_mask}
-    f_student = lcm_consistency_fn(schedule, student(z_t, t, text_emb, time_cond=w_emb, **words), z_t, t)
+    kind_s, kind_t = student.config.prediction_type, teacher.config.prediction_type
+    f_student = lcm_consistency_fn(schedule, student(z_t, t, text_emb, time_cond=w_emb, **words), z_t, t, kind_s)
     with torch.no_grad():
         null_mask = None if text_mask is None else torch.zeros_like(text_mask, dtype=torch.bool)
-        eps_c = teacher(z_t, t, text_emb, **words)
-        eps_u = teacher(z_t, t, teacher.null_text_like(text_emb), text_tokens=text_tokens, text_mask=null_mask)
+        _, eps_c = schedule.split_prediction(teacher(z_t, t, text_emb, **words), z_t, t, kind_t)
+        uncond = teacher(z_t, t, teacher.null_text_like(text_emb), text_tokens=text_tokens, text_mask=null_mask)
+        _, eps_u = schedule.split_prediction(uncond, z_t, t, kind_t)
         eps_w = cfg_combine(eps_u, eps_c, (1.0 + w)[:, None, None])
         z_prev = ddim_solver_step(schedule, z_t, eps_w, t, t_prev)
         f_target = lcm_consistency_fn(schedule, target(z_prev, t_prev, text_emb, time_cond=w_emb, **words),
-                                      z_prev, t_prev)
+                                      z_prev, t_prev, kind_s)
     return {"total": distance(f_student, f_target, kind, huber_c), "w": w.mean()}
 
 

@@ -46,13 +46,15 @@ class ControlNetGenerator:
     """One-step MotionLCM with the ControlNet (and optionally test-time refinement), then VAE decoding."""
 
     stochastic = True
-    nfe = 2  # the ControlNet copy and the student, once each
 
     def __init__(self, name: str, student: MLDDenoiser, controlnet: MotionControlNet, vae: MotionVAE,
                  schedule: NoiseSchedule, guidance: float, control: ControlSpec, mean: np.ndarray, std: np.ndarray,
                  refine: dict[str, Any] | None = None) -> None:
         self.name, self.student, self.controlnet, self.vae, self.schedule = name, student, controlnet, vae, schedule
         self.w, self.control, self.refine = guidance - 1.0, control, refine
+        # forward passes of the ControlNet copy and the student: once each, and once more per refinement step
+        # (each step also runs both backward and the decoder forward and backward, which NFE does not count)
+        self.nfe = 2 * (1 + (refine["steps"] if refine else 0))
         self.mean, self.std = torch.from_numpy(mean.astype(np.float32)), torch.from_numpy(std.astype(np.float32))
 
     @torch.inference_mode(False)

@@ -17,7 +17,7 @@ The draws and the evaluator's embeddings of the captions and of the reference mo
 (:class:`Reference`) are computed once and saved by the ``Real`` row's stage; every model
 family's stage loads them. Each row draws its Diversity and MultiModality pairs from its own
 random stream (:func:`row_rng`), so its metrics do not depend on the rows evaluated beside it.
-AITS (seconds per sentence, batch 1, warm, loading excluded) and ms per frame are timed once
+AITS (seconds per sentence, batch 1, warm, loading and text encoding excluded) and ms per frame are timed once
 per generator on ``timing_sentences`` test captions (fewer, but at least three, once they
 have taken ``timing_seconds``).
 
@@ -66,7 +66,7 @@ from data.control import evaluation_mask
 from data.features import recover_from_ric
 from data.joint_measures import reconstruction_detail
 from data.motion_dataset import pad_motions
-from data.skeleton import Skeleton
+from data.skeleton import HUMANML3D, Skeleton
 from data.store import StoredItem
 from data.vocab import WordVocab
 from models import metrics as M
@@ -201,22 +201,27 @@ def physical(raw: np.ndarray, lengths: np.ndarray, skeleton: Skeleton) -> dict[s
     return M.physical_metrics(joints, skeleton)
 
 
-def mpjpe_mm(real: np.ndarray, recon: np.ndarray, lengths: np.ndarray, joints_num: int) -> float:
+def mpjpe_mm(real: np.ndarray, recon: np.ndarray, lengths: np.ndarray, skeleton: Skeleton) -> float:
     """Root-aligned mean per-joint position error (mm) of two raw feature sets' recovered joints.
 
     As MLD's reconstruction metric: per frame, both skeletons are moved so their root joints
-    coincide, then the joint distances are averaged over valid frames and joints.
+    coincide, then the joint distances are averaged over valid frames and joints, in the skeleton's
+    units times ``skeleton.unit`` (metres per unit: KIT-ML is stored in millimetres).
     """
     errors = []
     for b, n in enumerate(lengths):
-        a, r = recover_from_ric(real[b, :n], joints_num), recover_from_ric(recon[b, :n], joints_num)
+        a, r = (recover_from_ric(x[b, :n], skeleton.joints_num) for x in (real, recon))
         errors.append(np.linalg.norm((a - a[:, :1]) - (r - r[:, :1]), axis=-1).reshape(-1))
-    return 1000.0 * float(np.concatenate(errors).mean())
+    return 1000.0 * skeleton.unit * float(np.concatenate(errors).mean())
 
 
-def detail(real: np.ndarray, recon: np.ndarray, lengths: np.ndarray, joints_num: int) -> dict[str, float]:
+def detail(real: np.ndarray, recon: np.ndarray, lengths: np.ndarray, skeleton: Skeleton) -> dict[str, float]:
     """:func:`data.joint_measures.reconstruction_detail` of two raw feature sets (B, T, D): what of each
-    real motion's path, turns, kicks, waves and jumps the reconstruction keeps."""
+    real motion's path, turns, kicks, waves and jumps the reconstruction keeps. Its joint indices and
+    thresholds are HumanML3D's (metres, 22 joints), so other skeletons get no detail columns."""
+    if skeleton.name != HUMANML3D.name:
+        return {}
+    joints_num = skeleton.joints_num
     a, b = recover_from_ric(real, joints_num), recover_from_ric(recon, joints_num)
     return reconstruction_detail([a[k, :n] for k, n in enumerate(lengths)], [b[k, :n] for k, n in enumerate(lengths)])
 
@@ -415,8 +420,8 @@ def replicate(ref: Reference, r: int, embedder: MotionEmbedder, skeleton: Skelet
     for rec in reconstructors:
         raw = denormalise(rec.reconstruct((d.real - mean) / std, d.lengths), mean, std)
         result[rec.name] = _row_metrics(rec.name, raw, ref, embedder, skeleton, cfg, row_rng(cfg, r, rec.name))
-        result[rec.name]["MPJPE_mm"] = mpjpe_mm(d.real, raw, d.lengths, skeleton.joints_num)
-        result[rec.name] |= detail(d.real, raw, d.lengths, skeleton.joints_num)
+        result[rec.name]["MPJPE_mm"] = mpjpe_mm(d.real, raw, d.lengths, skeleton)
+        result[rec.name] |= detail(d.real, raw, d.lengths, skeleton)
         if semantics is not None:
             result[rec.name] |= _action_accuracy(semantics, raw, d)
     for gen in generators:
@@ -433,7 +438,7 @@ def replicate(ref: Reference, r: int, embedder: MotionEmbedder, skeleton: Skelet
         result[gen.name] = _row_metrics(gen.name, raw, g_ref, embedder, skeleton, g_cfg, rng)
         if hint is not None:
             joints = recover_from_ric(raw, skeleton.joints_num)
-            result[gen.name] |= M.control_errors(joints, hint.joints, hint.mask)
+            result[gen.name] |= M.control_errors(joints, hint.joints, hint.mask, unit=skeleton.unit)
         if gen.stochastic and k is None and cfg.mm_repeats > cfg.mm_times:
             result[gen.name]["MultiModality"] = multimodality(gen, d, embedder, mean, std, cfg, r, rng, hint)
         if semantics is not None and gen.name in cfg.paraphrase_rows:

@@ -17,7 +17,7 @@ import numpy as np
 import torch
 
 from data.motion_dataset import pad_tokens
-from models.diffusion import NoiseSchedule
+from models.diffusion import NoiseSchedule, TimestepSpacing, ddim_timesteps
 from models.generator import Generator, Reconstructor, TextBatch
 from models.mld import MLDConfig, MLDDenoiser, sample_mld
 from models.motionlcm import TIMESTEPS, sample_motionlcm
@@ -74,8 +74,24 @@ def word_tokens(denoiser: MLDDenoiser, text: TextBatch) -> dict[str, torch.Tenso
     return {"text_tokens": tokens, "text_mask": mask}
 
 
+def ddim_spacing(num_steps: int, num_train_steps: int) -> TimestepSpacing:
+    """MLD's DDIM grid for ``num_steps``: its published ``leading`` grid (``steps_offset`` 1) when that grid starts
+    in the last tenth of the schedule, else ``trailing``, whose first step is T - 1.
+
+    Sampling starts from z_T ~ N(0, I), the latent of the last timestep. The leading grid's first step is
+    T - T // n + 1: 981 for 50 steps and 901 for 10, but 751, 501 and 1 for 4, 2 and 1 step, where pure
+    noise is handed to the network as a much less noisy latent (with one step the network is asked only at
+    t = 1 and returns about the noise: MLD-DDIM1 scored chance R-precision). So the few-step baselines of
+    MotionLCM's Table 4 (MLD-DDIM1/2/4) use the trailing grid, which starts at pure noise, and MLD-DDIM50
+    keeps MLD's own sampler (the two grids score alike at 50 steps: docs/evaluation.md).
+    """
+    first = int(ddim_timesteps(num_train_steps, num_steps, "leading")[0])
+    return "leading" if first >= 0.9 * num_train_steps else "trailing"
+
+
 class MLDGenerator:
-    """MLD: DDIM over the VAE latent with classifier-free guidance, then VAE decoding."""
+    """MLD: DDIM over the VAE latent with classifier-free guidance (the grid of :func:`ddim_spacing`), then VAE
+    decoding."""
 
     stochastic = True
 
@@ -83,6 +99,7 @@ class MLDGenerator:
                  num_steps: int, guidance: float) -> None:
         self.name, self.denoiser, self.vae, self.schedule = name, denoiser, vae, schedule
         self.num_steps, self.guidance = num_steps, guidance
+        self.spacing = ddim_spacing(num_steps, schedule.num_steps)
         self.nfe = num_steps * (2 if guidance != 1.0 else 1)
 
     @torch.inference_mode()
@@ -90,7 +107,8 @@ class MLDGenerator:
         generator = torch.Generator().manual_seed(seed)
         words = word_tokens(self.denoiser, text)
         out = sample_mld(self.denoiser, self.vae, self.schedule, torch.from_numpy(text.pooled.astype(np.float32)),
-                         torch.as_tensor(lengths), self.num_steps, self.guidance, generator, **words)
+                         torch.as_tensor(lengths), self.num_steps, self.guidance, generator,
+                         timestep_spacing=self.spacing, **words)
         return out.numpy()
 
 

@@ -66,10 +66,9 @@ def _cell(row: dict[str, float], key: str, decimals: int) -> str:
 def _name(name: str, row: dict[str, float]) -> str:
     """The row's name, marked when it was evaluated on a subset of each draw (``eval_items``) and of the
     replications (``eval_replications``)."""
-    if "eval_items" not in row:
-        return name
-    reps = f", {int(row['eval_replications'])} rep." if "eval_replications" in row else ""
-    return f"{name} (†{int(row['eval_items'])}{reps})"
+    marks = ([f"†{int(row['eval_items'])}"] if "eval_items" in row else []) + (
+        [f"{int(row['eval_replications'])} rep."] if "eval_replications" in row else [])
+    return f"{name} ({', '.join(marks)})" if marks else name
 
 
 @dataclass(frozen=True)
@@ -125,13 +124,13 @@ def report_sections(table: dict[str, dict[str, float]], speed: dict[str, dict[st
 def report_notes(table: dict[str, dict[str, float]]) -> list[str]:
     """The notes under the tables: what →, ± and AITS mean, and (†K) when a row has ``eval_items``."""
     notes = ["→: closer to Real (Real-action) is better. ± is 1.96·std/√R over replications. "
-             "AITS: seconds per sentence, batch 1, warm, loading excluded."]
+             "AITS: seconds per sentence, batch 1, warm, loading and text encoding excluded."]
     if any("eval_items" in row and "Accuracy" not in row for row in table.values()):
         notes.append("(†K): evaluated on the first K captions of each replication's draw, not the whole test set "
                      "(too slow): its FID (biased upward by few samples) and Diversity compare only with rows of "
                      "the same K; no MultiModality.")
     if any("eval_replications" in row for row in table.values()):
-        notes.append("(†K, R rep.): the same, in the first R replications only (no ± when R = 1).")
+        notes.append("(R rep.), (†K, R rep.): evaluated in the first R replications only (no ± when R = 1).")
     return notes
 
 
@@ -170,7 +169,7 @@ def plot_fid_vs_time(table: dict[str, dict[str, float]], path: Path) -> None:
     for name, row in table.items():
         if "AITS_s" in row:
             ax.scatter(row["AITS_s"], row["FID"], s=40)
-            ax.annotate(name, (row["AITS_s"], row["FID"]), textcoords="offset points", xytext=(5, 5))
+            ax.annotate(_name(name, row), (row["AITS_s"], row["FID"]), textcoords="offset points", xytext=(5, 5))
     if REAL in table:
         ax.axhline(table[REAL]["FID"], linestyle="--", color="grey", label="Real")
         ax.legend()

@@ -99,7 +99,8 @@ def vae_scores(params: dict[str, Any], loop_config: dict[str, Any], state: dict[
     lengths = np.array([item.length for item in items])
     raw = pad_motions([item.features for item in items], lengths)
     recon = VAEReconstruction(vae).reconstruct((raw - store.mean) / store.std, lengths)
-    return {"val_MPJPE_mm": mpjpe_mm(raw, denormalise(recon, store.mean, store.std), lengths, store.joints_num)}
+    skeleton = get_skeleton(store.meta["skeleton"])
+    return {"val_MPJPE_mm": mpjpe_mm(raw, denormalise(recon, store.mean, store.std), lengths, skeleton)}
 
 
 def evaluator_scores(params: dict[str, Any], loop_config: dict[str, Any], state: dict[str, Any]) -> dict[str, float]:

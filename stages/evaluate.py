@@ -122,9 +122,8 @@ def run(name: str, params: dict[str, Any]) -> dict[str, dict[str, float]]:
     recognised = bool(actions) or scored  # the rows the action recogniser scores
     recogniser = (load_recogniser(ctx.trained(RECOGNISER)) if recognised and not skipped(artifacts / RECOGNISER)
                   else None)
-    if actions:  # the action-to-motion protocol: the recogniser, not the T2M evaluator
-        table = evaluate_action_rows(actions, ctx.store, recogniser, cfg.replications,
-                                     cfg.seed, diversity_times=cfg.diversity_times, mm_times=cfg.mm_times,
+    if actions:  # the action-to-motion protocol: the recogniser, not the T2M evaluator, and its own pair counts
+        table = evaluate_action_rows(actions, ctx.store, recogniser, cfg.replications, cfg.seed,
                                      unit_length=cfg.unit_length)
         with atomic_directory(out, owner="evaluate") as tmp:
             (tmp / "metrics.json").write_text(json.dumps(table, indent=2) + "\n")

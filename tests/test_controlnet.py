@@ -371,3 +371,24 @@ def test_stage_check_names_a_bad_patch_size_before_any_work(value, message):
     with pytest.raises(ConfigError, match=re.escape(message)):
         train_controlnet.check_section(params)
     train_controlnet.check_section(load_params([]))  # the shipped params pass
+
+
+@pytest.mark.parametrize("refine_steps", [None, 0, 3])
+def test_controlnet_rows_count_every_forward_pass_as_nfe(refine_steps):
+    """NFE of MotionLCM-Control (2: the copy and the student) and of +refine (2 more per refinement step),
+    counted against the forward passes one sample makes."""
+    from models.generator import TextBatch
+    from pipelines.controlnet_family import ControlNetGenerator, ControlSpec
+
+    base = student()
+    controlnet = MotionControlNet(base, control_config()).eval()
+    calls = []
+    for net in (base, controlnet):  # the student, and the ControlNet (its copy runs through `run`)
+        net.register_forward_hook(lambda *_: calls.append(1))
+    refine = None if refine_steps is None else {"steps": refine_steps, "lr": 0.1, "project": False}
+    gen = ControlNetGenerator("c", base, controlnet, tiny_vae().eval(), SCHEDULE, 2.5, ControlSpec("100%"),
+                              np.zeros(D, np.float32), np.ones(D, np.float32), refine)
+    x = batch(1, 8)
+    text = TextBatch(texts=["a"], pooled=x["text_emb"].numpy(), tokens=[x["text_tokens"][0].numpy()])
+    gen.sample(text, np.array([8]), 0, Hint(joints=x["hint"].numpy(), mask=x["mask"].numpy()))
+    assert len(calls) == gen.nfe == 2 * (1 + (refine_steps or 0))

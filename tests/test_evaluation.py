@@ -263,6 +263,7 @@ def test_a_group_larger_than_the_split_is_a_clear_error(world, tmp_path):
 
 
 def test_mpjpe_is_root_aligned_and_in_millimetres():
+    from data.skeleton import HUMANML3D, KIT
     from pipelines.evaluation import mpjpe_mm
 
     rng = np.random.default_rng(3)
@@ -270,10 +271,30 @@ def test_mpjpe_is_root_aligned_and_in_millimetres():
     moved = real.copy()
     moved[..., 1:3] += 0.3  # different root velocity: the whole body drifts, poses are unchanged
     lengths = np.array([50, 30])
-    assert mpjpe_mm(real, moved, lengths, 22) == pytest.approx(0.0, abs=1e-3)
+    assert mpjpe_mm(real, moved, lengths, HUMANML3D) == pytest.approx(0.0, abs=1e-3)
     bent = real.copy()
     bent[..., 4:7] += 0.01  # joint 1 shifted by 1 cm in every valid frame (RIC positions)
-    assert mpjpe_mm(real, bent, lengths, 22) == pytest.approx(10 * np.sqrt(3) / 22, rel=1e-3)  # 1 of 22 joints
+    assert mpjpe_mm(real, bent, lengths, HUMANML3D) == pytest.approx(10 * np.sqrt(3) / 22, rel=1e-3)  # 1 of 22
+    # KIT-ML is stored in millimetres: a 10-unit shift of one of its 21 joints is 10 mm, not 10 m
+    kit_dim = 12 * KIT.joints_num - 1
+    real, bent = real[..., :kit_dim], bent[..., :kit_dim] * 1000.0
+    real = real * 1000.0
+    assert mpjpe_mm(real, bent, lengths, KIT) == pytest.approx(10 * np.sqrt(3) / 21, rel=1e-3)
+
+
+def test_reconstruction_detail_is_humanml3d_only():
+    """The detail measures read HumanML3D's joint indices in metres: KIT-ML rows get none (they crashed on
+    joint 21), HumanML3D rows get every column."""
+    from data.skeleton import HUMANML3D, KIT
+    from pipelines.evaluation import detail
+
+    rng = np.random.default_rng(4)
+    lengths = np.array([60, 40])
+    kit = rng.standard_normal((2, 60, 12 * KIT.joints_num - 1)).astype(np.float32)
+    assert detail(kit, kit, lengths, KIT) == {}
+    hml = rng.standard_normal((2, 60, D)).astype(np.float32) * 0.05
+    assert {"path_err_m", "turn_kept"} <= set(detail(hml, hml, lengths, HUMANML3D))
+    assert detail(hml, hml, lengths, HUMANML3D)["path_err_m"] == 0.0
 
 
 class DriftingController:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 import pytest
 import torch
 from tolerance import float32_atol
@@ -340,3 +341,23 @@ def test_pad_tokens() -> None:
     assert pad_tokens(words, 6)[0].shape == (3, 6, 3)
     with pytest.raises(ValueError, match="max_tokens=3"):
         pad_tokens(words, 3)
+
+
+def test_mld_rows_start_their_ddim_grid_at_pure_noise(schedule: NoiseSchedule) -> None:
+    """MLD's published leading grid where it starts in the last tenth of the schedule (50 and 10 steps), the
+    trailing grid for the few-step rows, whose leading grid would start at t = 751, 501 or 1."""
+    from models.generator import TextBatch
+    from pipelines.mld_family import MLDGenerator, ddim_spacing
+
+    assert [ddim_spacing(n, 1000) for n in (50, 10, 4, 2, 1)] == ["leading"] * 2 + ["trailing"] * 3
+    net, vae = _denoiser().eval(), _vae().eval()
+    seen: list[list[int]] = []
+    forward = net.forward
+    net.forward = lambda x, t, *a, **k: seen.append(t.tolist()) or forward(x, t, *a, **k)  # type: ignore[method-assign]
+    pooled = torch.randn(1, E, generator=_gen(0)).numpy()
+    text = TextBatch(texts=["a"], pooled=pooled, tokens=[np.zeros((1, 5), np.float32)])
+    for steps, first in ((50, 981), (4, 999), (1, 999)):
+        seen.clear()
+        MLDGenerator("MLD", net, vae, schedule, steps, 1.0).sample(text, torch.tensor([6]).numpy(), seed=0)
+        assert len(seen) == steps and seen[0] == [first]
+    assert seen == [[999]]

@@ -139,6 +139,51 @@ def test_distillation_target_is_the_teacher_ddim_step_through_the_target_network
     assert all(p.grad is None for p in net.parameters())
 
 
+class Oracle(torch.nn.Module):
+    """The exact denoiser of one data point ``x0``, answering in its ``prediction_type``."""
+
+    def __init__(self, x0: torch.Tensor, kind: str) -> None:
+        super().__init__()
+        self.x0, self.config = x0, MLDConfig(**{**TINY.__dict__, "prediction_type": kind})
+        self.steps: list[torch.Tensor] = []
+
+    def null_text_like(self, text: torch.Tensor) -> torch.Tensor:
+        return torch.zeros_like(text)
+
+    def forward(self, z: torch.Tensor, t: torch.Tensor, text: torch.Tensor, **_: object) -> torch.Tensor:
+        self.steps.append(t)
+        ab = SCHEDULE.alphas_cumprod[t].float()[:, None, None]
+        eps = (z - ab.sqrt() * self.x0) / (1 - ab).sqrt()
+        kind = self.config.prediction_type
+        return {"epsilon": eps, "sample": self.x0, "v_prediction": ab.sqrt() * eps - (1 - ab).sqrt() * self.x0}[kind]
+
+
+@pytest.mark.parametrize("kind", ["epsilon", "sample", "v_prediction"])
+def test_distillation_reads_each_network_in_its_prediction_type(kind: str) -> None:
+    """With an exact teacher, student and target of one point, the consistency outputs are that point (but at
+    the boundary t_n = 0, where the target is z_n itself), whatever the parameterisation. Read as epsilon,
+    a sample-predicting oracle's student output was far from the data while its loss stayed near 0."""
+    x0 = torch.randn(16, 2, 8, generator=torch.Generator().manual_seed(0))
+    oracle = Oracle(x0, kind)
+    seen = []
+
+    def spy(*args: object, **kwargs: object) -> torch.Tensor:
+        seen.append(lcm_consistency_fn(*args, **kwargs))
+        return seen[-1]
+
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr("models.motionlcm.lcm_consistency_fn", spy)
+        loss = lcm_distillation_loss(oracle, oracle, oracle, SCHEDULE, x0, torch.zeros(16, 6), w_range=(1.5, 4.5),
+                                     num_ddim_steps=10, kind="l2", generator=torch.Generator().manual_seed(1))
+    f_student, f_target = seen
+    inner = oracle.steps[-1] > 0  # the target network's call: t_n
+    assert inner.sum() >= 8
+    torch.testing.assert_close(f_student, x0, atol=1e-4, rtol=0)
+    torch.testing.assert_close(f_target[inner], x0[inner], atol=1e-4, rtol=0)
+    assert loss["total"].item() == pytest.approx(((f_student - f_target) ** 2).mean().item(), rel=1e-5)
+    assert loss["total"].item() < 1e-3
+
+
 def test_distance_known_values() -> None:
     a, b = torch.zeros(4), torch.tensor([0.0, 1.2, -1.2, 0.0])
     assert distance(a, b, "huber", 0.5).item() == pytest.approx((2 * (1.3 - 0.5)) / 4)

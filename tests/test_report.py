@@ -216,3 +216,14 @@ def test_paraphrase_twins_leave_the_papers_table_for_their_own() -> None:
     assert list(paraphrases.rows) == ["Real", "MLD-DDIM50", "MLD-DDIM50@paraphrase"]
     assert "action_accuracy" in [key for key, _, _ in paraphrases.columns]
     assert len(report_sections({k: v for k, v in table.items() if not k.endswith(PARAPHRASE)})) == 1
+
+
+def test_rows_evaluated_on_a_subset_are_marked() -> None:
+    """A row bounded in captions, in replications or in both carries the mark the notes explain."""
+    from pipelines.report import _name, report_notes
+
+    assert _name("A", {"FID": 1.0}) == "A"
+    assert _name("A", {"eval_items": 32.0}) == "A (†32)"
+    assert _name("A", {"eval_items": 32.0, "eval_replications": 1.0}) == "A (†32, 1 rep.)"
+    assert _name("A", {"eval_replications": 1.0}) == "A (1 rep.)"
+    assert report_notes({"A": {"eval_replications": 1.0}})[-1].startswith("(R rep.), (†K, R rep.):")
