@@ -10,7 +10,10 @@ test motions (first caption, full length, seed 0, ``sample.motionlcm_guidance``)
 ``$DENSITY``: the control errors of MotionLCM-1 without control, of the ControlNet (again with each
 step count of ``LCM_STEPS``, e.g. "2 4": MotionLCM's multistep sampling, fresh noise between steps
 from seed 1; with ``HINT_ABLATION=1`` also given no hint and given the next motion's hint, still
-scored against each motion's own path: what it owes to the hint), and of the noise refinement at
+scored against each motion's own path: what it owes to the hint; with ``RESIDUAL_SCALES``, e.g. "0.5
+1.5 2", also with the ControlNet's residuals multiplied by each factor at sampling, as diffusers'
+``controlnet_conditioning_scale``; with ``HINT_GUIDANCE``, e.g. "1.5 2", guided toward the hint:
+``r(no hint) + s (r(hint) - r(no hint))``, two ControlNet passes), and of the noise refinement at
 several (steps, lr) settings (``REFINE_SETTINGS``, default "5:0.1 10:0.1 ..."), plus batch-1 seconds
 per motion of the ControlNet with 0/10/20/30 refinement steps (``REFINE=0`` skips the refinement
 rows and timings). Each row also gets the T2M evaluator's FID against the same items' real motions,
@@ -127,6 +130,31 @@ def refine(model: torch.nn.Module, steps: int, lr: float, index: slice = slice(N
                         lengths[index], mean=mean, std=std, latent_scale=scale, steps=steps, lr=lr)
 
 
+class ScaledResiduals(torch.nn.Module):
+    """The ControlNet with its residuals multiplied by ``factor`` (sampling only; 1 is the trained model)."""
+
+    def __init__(self, controlnet: torch.nn.Module, factor: float) -> None:
+        super().__init__()
+        self.controlnet, self.factor = controlnet, factor
+
+    def forward(self, *args: torch.Tensor, **kwargs: torch.Tensor | None) -> list[torch.Tensor]:
+        return [self.factor * r for r in self.controlnet(*args, **kwargs)]
+
+
+class HintGuided(torch.nn.Module):
+    """The ControlNet's residuals guided toward the hint, ``r(no hint) + s (r(hint) - r(no hint))`` (sampling only)."""
+
+    def __init__(self, controlnet: torch.nn.Module, scale: float) -> None:
+        super().__init__()
+        self.controlnet, self.scale = controlnet, scale
+
+    def forward(self, z_t: torch.Tensor, t: torch.Tensor | int, text_emb: torch.Tensor, hint: torch.Tensor,
+                mask: torch.Tensor, **kwargs: torch.Tensor | None) -> list[torch.Tensor]:
+        guided = self.controlnet(z_t, t, text_emb, hint, mask, **kwargs)
+        free = self.controlnet(z_t, t, text_emb, hint, torch.zeros_like(mask), **kwargs)
+        return [r0 + self.scale * (r1 - r0) for r0, r1 in zip(free, guided, strict=True)]
+
+
 report("uncontrolled", latents(student))
 controlled = ControlledStudent(student, controlnet, hint, hint_mask)
 report("controlnet", latents(controlled))
@@ -135,6 +163,12 @@ if os.environ.get("HINT_ABLATION") == "1":
     other_mask = hint_mask.roll(1, 0) & torch.from_numpy(valid)[..., None]  # within each motion's own length
     report("controlnet, the next motion's hint",
            latents(ControlledStudent(student, controlnet, hint.roll(1, 0), other_mask)))
+for factor in os.environ.get("RESIDUAL_SCALES", "").split():
+    report(f"controlnet, residuals x {factor}",
+           latents(ControlledStudent(student, ScaledResiduals(controlnet, float(factor)), hint, hint_mask)))
+for strength in os.environ.get("HINT_GUIDANCE", "").split():
+    report(f"controlnet, hint guidance {strength}",
+           latents(ControlledStudent(student, HintGuided(controlnet, float(strength)), hint, hint_mask)))
 for lcm_steps in os.environ.get("LCM_STEPS", "").split():
     report(f"uncontrolled steps={lcm_steps}", latents(student, steps=int(lcm_steps)))
     report(f"controlnet steps={lcm_steps}", latents(controlled, steps=int(lcm_steps)))
