@@ -2,10 +2,12 @@
 
 Writing. :func:`write_bvh` turns global joint positions (T, J, 3) into a BVH of a dataset
 skeleton (:mod:`data.skeleton`): the hierarchy follows ``skeleton.parents``, each joint's OFFSET
-is its rest bone vector ``raw_offsets[j] * bone_lengths[j]`` (the rest pose is the skeleton's:
-for HumanML3D a T-pose facing +z, y up), the root has position channels (its offset is zero, so
-they are the pelvis position) and every joint three rotation channels ``Zrotation Xrotation
-Yrotation`` in degrees. Units are the joints' (metres for HumanML3D).
+is its rest bone vector ``raw_offsets[j] * bone_lengths[j]`` (the rest pose is the skeleton's, not a
+T-pose: for HumanML3D facing +z with y up, the legs and arms hanging straight down, hips and collars
+sideways, the neck-to-head bone and the feet pointing forward), the root has position channels (its
+offset is zero, so they are the pelvis position) and every joint three rotation channels
+``Zrotation Xrotation Yrotation`` in degrees, continuous in time (:func:`continuous_euler`). Units are
+the joints' (metres for HumanML3D, millimetres for KIT-ML).
 
 Rotations are solved from the positions. In BVH a joint's rotation turns the offsets of its
 children, so:
@@ -167,6 +169,26 @@ def _numbers(values: np.ndarray) -> str:
     return " ".join(f"{v:.6f}" for v in np.asarray(values, np.float64).ravel() + 0.0)  # + 0.0: no "-0.000000"
 
 
+def continuous_euler(angles: np.ndarray) -> np.ndarray:
+    """(T, N, 3) intrinsic ``Z X Y`` Euler angles (degrees) made continuous in time, every frame's rotation kept.
+
+    A rotation has two angle triples, ``(z, x, y)`` and ``(z + 180, 180 - x, y + 180)``, and each angle may
+    move by whole turns. Frame by frame, each angle of both triples is moved by whole turns to the nearest
+    of the previous frame's, and the triple nearer to it (summed absolute change) is kept. Without this
+    a spin wraps from +180 to -180 degrees, and near gimbal lock (x near +-90) the per-frame solution
+    jumps between the two triples, so an animation tool that interpolates or retimes the curves would
+    twist the joint through a full turn.
+    """
+    out = np.array(angles, np.float64)
+    for t in range(1, len(out)):
+        z, x, y = np.moveaxis(out[t], -1, 0)
+        triples = np.stack([out[t], np.stack([z + 180.0, 180.0 - x, y + 180.0], axis=-1)])  # (2, N, 3)
+        triples += 360.0 * np.round((out[t - 1] - triples) / 360.0)
+        other = np.abs(triples - out[t - 1]).sum(-1)  # (2, N)
+        out[t] = np.where((other[1] < other[0])[:, None], triples[1], triples[0])
+    return out
+
+
 def write_bvh(joints: np.ndarray, skeleton: Skeleton, path: Path | str, fps: float) -> Path:
     """Write global joint positions (T, J, 3) as a BVH of ``skeleton`` at ``fps``; returns the path.
 
@@ -183,6 +205,7 @@ def write_bvh(joints: np.ndarray, skeleton: Skeleton, path: Path | str, fps: flo
     with warnings.catch_warnings():  # gimbal lock: scipy picks one of the equivalent angle triples
         warnings.simplefilter("ignore", UserWarning)
         angles = Rotation.from_matrix(local.reshape(-1, 3, 3)).as_euler(ROTATION_ORDER, degrees=True)
+    angles = continuous_euler(angles.reshape(len(joints), -1, 3))
     values = np.concatenate([joints[:, 0], angles.reshape(len(joints), -1)], axis=1)
     lines = _hierarchy_lines(nodes)
     lines += ["MOTION", f"Frames: {len(joints)}", f"Frame Time: {1.0 / fps:.8f}"]

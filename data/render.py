@@ -52,13 +52,19 @@ def joints_of(motion: np.ndarray, recover: Callable[[np.ndarray, int], np.ndarra
 
 
 class Camera:
-    """Orthographic projection of world points onto a screen plane (x right, y up)."""
+    """Orthographic projection of world points onto a screen plane (x right, y up).
+
+    The camera sits in direction ``toward`` from the scene (azimuth about y from +z, elevation above
+    the floor) and looks back at it; (right, up, toward) is a right-handed basis, so the picture is
+    what a viewer there sees, not its mirror image: from the front of a HumanML3D body (azimuth 0,
+    the body facing +z) its left side (+x) is on the screen's right.
+    """
 
     def __init__(self, azim: float = 35.0, elev: float = 15.0) -> None:
         a, e = np.radians(azim), np.radians(elev)
-        self.right = np.array([-np.cos(a), 0.0, np.sin(a)])
         toward = np.array([np.sin(a) * np.cos(e), np.sin(e), np.cos(a) * np.cos(e)])  # to the camera
-        self.up = np.cross(self.right, toward)
+        self.right = np.array([np.cos(a), 0.0, -np.sin(a)])
+        self.up = np.cross(toward, self.right)
 
     def project(self, points: np.ndarray) -> np.ndarray:
         """(..., 3) -> (..., 2) screen coordinates."""

@@ -112,7 +112,8 @@ def lcm_distillation_loss(
     w = w_range[0] + (w_range[1] - w_range[0]) * torch.rand(b, generator=generator, device=z0.device)
     w_emb = guidance_embedding(w)
     words = {"text_tokens": text_tokens, "text_mask": text_mask}
-    kind_s, kind_t = student.config.prediction_type, teacher.config.prediction_type
+    # the student's parameterisation read from its EMA copy: under DDP the student is wrapped (no .config)
+    kind_s, kind_t = target.config.prediction_type, teacher.config.prediction_type
     f_student = lcm_consistency_fn(schedule, student(z_t, t, text_emb, time_cond=w_emb, **words), z_t, t, kind_s)
     with torch.no_grad():
         null_mask = None if text_mask is None else torch.zeros_like(text_mask, dtype=torch.bool)

@@ -19,7 +19,8 @@ Outputs. ``--out`` with a format's extension is one file (one prompt); otherwise
 directory that receives ``NN_<words>.<format>`` per prompt, ``NN`` its position from 00 (the
 ``--text`` prompts first, then the file's), ``<words>`` the start of its text, and the format
 ``--format`` (default gif). Formats: ``.gif``/``.mp4`` animation, ``.png`` frame strip, ``.npy``
-global joints (T, J, 3) in metres, ``.bvh`` the skeleton's joint rotations (:mod:`data.bvh`).
+global joints (T, J, 3) in metres (KIT-ML's millimetres converted), ``.bvh`` the skeleton's joint rotations
+in its own units (:mod:`data.bvh`; KIT-ML: millimetres).
 Models are read from ``paths.artifacts`` (``dvc repro`` first).
 
 Everything that can be checked without a model is checked before loading one (one line, exit
@@ -310,27 +311,33 @@ def slug(text: str, limit: int = 40) -> str:
 
 def write_motion(joints: np.ndarray, path: Path, caption: str, skeleton_name: str,
                  target_path: np.ndarray | None = None) -> Path:
-    """Save one motion's joints in the format of the path's extension (``target_path``: drawn on the floor)."""
+    """Save one motion's joints (the dataset's units) in the format of the path's extension (``target_path``:
+    drawn on the floor). ``.npy`` and the drawings are in metres, ``.bvh`` in the skeleton's own units (its
+    offsets'): millimetres for KIT-ML."""
     skeleton = get_skeleton(skeleton_name)
     fmt = path.suffix.lower().lstrip(".")
-    if fmt == "npy":
-        np.save(path, joints.astype(np.float32))
-        return path
     if fmt == "bvh":
         return write_bvh(joints, skeleton, path, skeleton.fps)
+    metres = joints * skeleton.unit
+    target = None if target_path is None else target_path * skeleton.unit
+    if fmt == "npy":
+        np.save(path, metres.astype(np.float32))
+        return path
     if fmt == "png":
-        return render_strip(joints, path, caption, skeleton, target_path=target_path)
-    return render_animation(joints, path, caption, skeleton, target_path=target_path)
+        return render_strip(metres, path, caption, skeleton, target_path=target)
+    return render_animation(metres, path, caption, skeleton, target_path=target)
 
 
 def pelvis_path(trajectory: str, length: int, store: FeatureStore, size: float | None = None) -> np.ndarray:
-    """``--trajectory``: a shape of :data:`data.trajectories.SHAPES` at the mean pelvis height, or a ``.npy`` file."""
+    """``--trajectory``: a shape of :data:`data.trajectories.SHAPES` at the mean pelvis height, or a ``.npy`` file,
+    both in metres; returned in the dataset's units (the hints the ControlNet was trained on)."""
+    unit = get_skeleton(store.meta["skeleton"]).unit
     if trajectory in SHAPES:
-        return make_trajectory(trajectory, length, size=size, height=float(store.mean[3]))
+        return make_trajectory(trajectory, length, size=size, height=float(store.mean[3]) * unit) / unit
     if trajectory.endswith(".npy"):
         if size is not None:
             raise ValueError("--size applies to the shapes, not to a .npy trajectory")
-        return load_trajectory(trajectory, length)
+        return load_trajectory(trajectory, length) / unit
     raise ValueError(f"--trajectory {trajectory!r}: use one of {', '.join(SHAPES)} or a .npy file")
 
 
@@ -459,7 +466,8 @@ def run_request(params: dict[str, Any], request: Request) -> list[Path]:
     jobs = []
     for joints, path, prompt in zip(all_joints, request.paths, request.prompts, strict=True):
         if target is not None:
-            error = np.linalg.norm(joints[:, CONTROL_JOINTS["pelvis"]] - target[: len(joints)], axis=-1).mean()
+            unit = get_skeleton(skeleton).unit
+            error = unit * np.linalg.norm(joints[:, CONTROL_JOINTS["pelvis"]] - target[: len(joints)], axis=-1).mean()
             skating = foot_skating_ratio(joints, get_skeleton(skeleton))
             print(f"{path.name}: pelvis {error:.3f} m from the trajectory on average; feet skating in "
                   f"{skating:.0%} of frame pairs")

@@ -12,8 +12,9 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from scipy.spatial.transform import Rotation
 
-from data.bvh import read_bvh, write_bvh
+from data.bvh import continuous_euler, read_bvh, write_bvh
 from data.kinematics import forward_kinematics, inverse_kinematics
 from data.skeleton import HUMANML3D, Skeleton
 from data.synthetic import SyntheticConfig, generate_motion
@@ -172,3 +173,27 @@ def test_write_refuses_joints_of_another_skeleton(tmp_path: Path) -> None:
     with pytest.raises(ValueError, match=r"expected joints \(T, 22, 3\), got \(5, 21, 3\)"):
         write_bvh(np.zeros((5, 21, 3)), HUMANML3D, tmp_path / "x.bvh", 20.0)
     assert not (tmp_path / "x.bvh").exists()
+
+
+def test_angle_curves_are_continuous_and_every_frame_exact(tmp_path: Path) -> None:
+    """A spin of two turns and a rotation swung through gimbal lock (x = 90 in Z X Y) write angle curves
+    without wraps or flips between the two equivalent triples, and the positions still round-trip."""
+    joints = np.load(FIXTURE)
+    t = np.linspace(0.0, 4.0 * np.pi, len(joints))
+    spin = Rotation.from_euler("y", t[:, None]).as_matrix()  # (T, 3, 3): two turns about the vertical
+    root = joints[:, :1]
+    spun = np.einsum("tij,tkj->tki", spin, joints - root) + root
+    path = write_bvh(spun, HUMANML3D, tmp_path / "spin.bvh", HUMANML3D.fps)
+    values = np.loadtxt(path.read_text().split("Frame Time:")[1].splitlines()[1:])
+    # no wrap and no flip between the two triples (half a turn or more); near gimbal lock z and y may still
+    # trade tens of degrees for a small rotation (here about 95 each way for 11 degrees at x = 85)
+    assert np.abs(np.diff(values[:, 3:], axis=0)).max() < 120.0
+    assert np.abs(values[:, 5]).max() > 360.0  # the pelvis's Yrotation (yaw) keeps counting past a turn
+    assert np.linalg.norm(read_bvh(path).joints(HUMANML3D.joint_names) - spun, axis=-1).max() < MM
+    # near gimbal lock the solver's triple flips; the chosen curve does not, and the rotations are the same
+    x = np.linspace(80.0, 100.0, 40)  # through x = 90, not on it (there z and y are not unique)
+    raw = Rotation.from_euler("ZXY", np.stack([30 + x, x, -20 + x], -1), degrees=True).as_euler("ZXY", degrees=True)
+    smooth = continuous_euler(raw[:, None])[:, 0]
+    assert np.abs(np.diff(raw, axis=0)).max() > 90.0 and np.abs(np.diff(smooth, axis=0)).max() < 10.0
+    np.testing.assert_allclose(Rotation.from_euler("ZXY", smooth, degrees=True).as_matrix(),
+                               Rotation.from_euler("ZXY", raw, degrees=True).as_matrix(), atol=1e-9)

@@ -210,3 +210,18 @@ def test_a_bad_target_path_is_refused(tmp_path, motion, target, match):
         render_strip(motion.joints, tmp_path / "bad.png", target_path=target)
     with pytest.raises(ValueError, match=match):
         render_animation(motion.joints, tmp_path / "bad.gif", target_path=target)
+
+
+@pytest.mark.parametrize(("azim", "elev"), [(0.0, 0.0), (35.0, 15.0), (-120.0, 40.0)])
+def test_the_camera_shows_the_scene_not_its_mirror_image(azim, elev):
+    """(right, up, toward-the-camera) is right-handed, and from the front of a body facing +z its left side
+    (+x in HumanML3D) is on the screen's right, its head up: what a viewer standing there sees."""
+    camera = Camera(azim, elev)
+    a, e = np.radians(azim), np.radians(elev)
+    toward = np.array([np.sin(a) * np.cos(e), np.sin(e), np.cos(a) * np.cos(e)])
+    assert np.linalg.det(np.stack([camera.right, camera.up, toward])) == pytest.approx(1.0)
+    assert camera.up[1] > 0
+    front = Camera(0.0, 0.0)
+    left_hand, right_hand, head = np.array([0.7, 1.4, 0.0]), np.array([-0.7, 1.4, 0.0]), np.array([0.0, 1.7, 0.0])
+    (lx, ly), (rx, _), (_, hy) = front.project(np.stack([left_hand, right_hand, head]))
+    assert lx == pytest.approx(0.7) and rx == pytest.approx(-0.7) and hy > ly
