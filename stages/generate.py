@@ -269,6 +269,9 @@ def output_paths(out: Path, fmt: str | None, prompts: Sequence[Prompt], director
     """
     fmt = None if fmt is None else fmt.lower()
     suffix = out.suffix.lower().lstrip(".")
+    bare = out.name.lower().lstrip(".")
+    if not directory and not out.is_dir() and out.name.startswith(".") and bare in FORMATS:
+        raise ValueError(f"--out {out}: a file name is missing before .{bare} (e.g. motion.{bare})")
     if suffix and not directory and not out.is_dir():
         check_format(suffix, f"--out {out}")
         if fmt is not None and fmt != suffix:

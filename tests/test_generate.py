@@ -86,6 +86,9 @@ def test_output_paths_that_cannot_be_written_fail_before_sampling(tmp_path: Path
     with pytest.raises(ValueError, match=r"file.npy is a file, not a directory"):
         generate.output_paths(tmp_path / "file.npy" / "deeper" / "x.npy", None, prompts[:1])
     assert sorted(p.name for p in (tmp_path / "out").iterdir()) == ["01_a_person_jumps.npy"]
+    # a bare extension is a missing file name, not a hidden directory (it became ".bvh/00_....gif")
+    with pytest.raises(ValueError, match=r"--out .*\.bvh: a file name is missing before \.bvh"):
+        generate.output_paths(tmp_path / ".bvh", None, prompts[:1])
 
 
 def test_steps_of_a_family_generate_does_not_know_are_left_to_the_family() -> None:
