@@ -116,7 +116,8 @@ def errors(z: torch.Tensor, project: bool = False) -> dict[str, float]:
                "R@3": float(M.r_precision(text_emb, motion_emb, 32, top_k=3)[2]),
                "Diversity": M.diversity(motion_emb, min(300, len(motion_emb) - 1), np.random.default_rng(0))}
     physics = M.physical_metrics([joints[k, :n] for k, n in enumerate(lengths.numpy())], skeleton)
-    return {k: round(v, 3) for k, v in (M.control_errors(joints, target, mask) | quality | physics).items()}
+    control = M.control_errors(joints, target, mask, unit=skeleton.unit)
+    return {k: round(v, 3) for k, v in (control | quality | physics).items()}
 
 
 def report(row: str, z: torch.Tensor) -> None:

@@ -177,7 +177,8 @@ def continuous_euler(angles: np.ndarray) -> np.ndarray:
     of the previous frame's, and the triple nearer to it (summed absolute change) is kept. Without this
     a spin wraps from +180 to -180 degrees, and near gimbal lock (x near +-90) the per-frame solution
     jumps between the two triples, so an animation tool that interpolates or retimes the curves would
-    twist the joint through a full turn.
+    twist the joint through a full turn. The angles must be finite (a NaN would carry to every later
+    frame; :func:`write_bvh` refuses non-finite joints before solving).
     """
     out = np.array(angles, np.float64)
     for t in range(1, len(out)):

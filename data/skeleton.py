@@ -23,7 +23,8 @@ class Skeleton:
         kinematic_chain: chains from the root; the parent of a joint is the element before it.
         raw_offsets: (J, 3) unit rest direction of each joint's bone.
         bone_lengths: (J,) default target bone lengths (root 0), in ``unit`` metres.
-        feet_left / feet_right: (ankle, toe) joint ids of each foot (KIT-ML: metatarsal, toe).
+        feet_left / feet_right: (ankle, toe) joint ids of each foot (KIT-ML: metatarsal, toe, with
+            HumanML3D's side labels, the opposite of the MMM joint names).
         face_joints: (r_hip, l_hip, r_shoulder, l_shoulder) used for the facing direction.
         leg_bones: the two joints whose bone lengths define leg length (retarget scale).
         contact_threshold: squared per-frame foot displacement below which a foot is in contact.
@@ -132,12 +133,15 @@ HUMANML3D = Skeleton(
     min_frames=40,
 )  # fmt: skip
 
-# Sides as HumanML3D's KIT code names them (face_joint_indx 11, 16, 5, 8 = r_hip, l_hip, sdr_r, sdr_l; feet
-# fid_r 14, 15 and fid_l 19, 20): KIT's right side is +x in its rest offsets and its bodies face -z.
+# The MMM model's joint order (KIT-ML; TEMOS and MotionGPT name it so): 5-7 and 11-15 are the left arm and
+# leg, at +x in the rest offsets, whose toes point +z. HumanML3D's KIT code labels its face joints 11, 16,
+# 5, 8 "r_hip, l_hip, sdr_r, sdr_l" and its feet 19, 20 "fid_l": the opposite sides. face_joints and
+# feet_left/feet_right below keep HumanML3D's indices (the features' facing and contact channels are
+# computed with them), so for KIT they name the other side than the joint names do.
 _KIT_NAMES = (
-    "root", "bp", "bt", "bln", "bun", "r_shoulder", "r_elbow", "r_wrist", "l_shoulder",
-    "l_elbow", "l_wrist", "r_hip", "r_knee", "r_ankle", "r_mt", "r_toe", "l_hip", "l_knee",
-    "l_ankle", "l_mt", "l_toe",
+    "root", "bp", "bt", "bln", "bun", "l_shoulder", "l_elbow", "l_wrist", "r_shoulder",
+    "r_elbow", "r_wrist", "l_hip", "l_knee", "l_ankle", "l_mt", "l_toe", "r_hip", "r_knee",
+    "r_ankle", "r_mt", "r_toe",
 )  # fmt: skip
 
 _KIT_RAW_OFFSETS = np.array(

@@ -17,7 +17,7 @@ import numpy as np
 import torch
 
 from data.motion_dataset import pad_tokens
-from models.diffusion import NoiseSchedule, TimestepSpacing, ddim_timesteps
+from models.diffusion import NoiseSchedule, TimestepSpacing
 from models.generator import Generator, Reconstructor, TextBatch
 from models.mld import MLDConfig, MLDDenoiser, sample_mld
 from models.motionlcm import TIMESTEPS, sample_motionlcm
@@ -75,18 +75,19 @@ def word_tokens(denoiser: MLDDenoiser, text: TextBatch) -> dict[str, torch.Tenso
 
 
 def ddim_spacing(num_steps: int, num_train_steps: int) -> TimestepSpacing:
-    """MLD's DDIM grid for ``num_steps``: its published ``leading`` grid (``steps_offset`` 1) when that grid starts
-    in the last tenth of the schedule, else ``trailing``, whose first step is T - 1.
+    """MLD's DDIM grid for ``num_steps`` n of T: its published ``leading`` grid (``steps_offset`` 1) for
+    10 <= n < T, else ``trailing``, whose first step is T - 1.
 
     Sampling starts from z_T ~ N(0, I), the latent of the last timestep. The leading grid's first step is
-    T - T // n + 1: 981 for 50 steps and 901 for 10, but 751, 501 and 1 for 4, 2 and 1 step, where pure
-    noise is handed to the network as a much less noisy latent (with one step the network is asked only at
-    t = 1 and returns about the noise: MLD-DDIM1 scored chance R-precision). So the few-step baselines of
+    (n - 1) (T // n) + 1: 981 for 50 steps and 901 for 10 (within the last tenth of the schedule), but
+    751, 667, 501 and 1 for 4, 3, 2 and 1 step, where pure noise is handed to the network as a much less
+    noisy latent (with one step the network is asked only at t = 1 and returns about the noise: MLD-DDIM1
+    scored chance R-precision); at n = T it would leave the schedule. So the few-step baselines of
     MotionLCM's Table 4 (MLD-DDIM1/2/4) use the trailing grid, which starts at pure noise, and MLD-DDIM50
-    keeps MLD's own sampler (the two grids score alike at 50 steps: docs/evaluation.md).
+    keeps MLD's own sampler (the two grids score alike at 50 steps; at 2 and 4 steps the leading grid
+    scored better: docs/findings.md, 2026-12-07 (late morning)).
     """
-    first = int(ddim_timesteps(num_train_steps, num_steps, "leading")[0])
-    return "leading" if first >= 0.9 * num_train_steps else "trailing"
+    return "leading" if 10 <= num_steps < num_train_steps else "trailing"
 
 
 class MLDGenerator:

@@ -464,14 +464,15 @@ def run_request(params: dict[str, Any], request: Request) -> list[Path]:
     elif target is not None or request.options.refine:
         raise ValueError(f"--trajectory/--refine need a controlled model (motionlcm-control), not {request.model!r}")
     all_joints = sample_all(ctx, generator, request, target)
+    bones = get_skeleton(skeleton)
     for folder in {path.parent for path in request.paths}:
         folder.mkdir(parents=True, exist_ok=True)
     jobs = []
     for joints, path, prompt in zip(all_joints, request.paths, request.prompts, strict=True):
         if target is not None:
-            unit = get_skeleton(skeleton).unit
-            error = unit * np.linalg.norm(joints[:, CONTROL_JOINTS["pelvis"]] - target[: len(joints)], axis=-1).mean()
-            skating = foot_skating_ratio(joints, get_skeleton(skeleton))
+            error = bones.unit * np.linalg.norm(joints[:, CONTROL_JOINTS["pelvis"]] - target[: len(joints)],
+                                                axis=-1).mean()
+            skating = foot_skating_ratio(joints, bones)
             print(f"{path.name}: pelvis {error:.3f} m from the trajectory on average; feet skating in "
                   f"{skating:.0%} of frame pairs")
         jobs.append((joints, path, prompt.text, skeleton, target))

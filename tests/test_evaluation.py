@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from data.motion_dataset import pad_motions
-from data.skeleton import HUMANML3D
+from data.skeleton import HUMANML3D, KIT
 from data.store import StoredItem
 from models.generator import ControlledGenerator, ControlSpec, Generator, Hint, TextBatch
 from pipelines import evaluation
@@ -263,7 +263,6 @@ def test_a_group_larger_than_the_split_is_a_clear_error(world, tmp_path):
 
 
 def test_mpjpe_is_root_aligned_and_in_millimetres():
-    from data.skeleton import HUMANML3D, KIT
     from pipelines.evaluation import mpjpe_mm
 
     rng = np.random.default_rng(3)
@@ -285,7 +284,6 @@ def test_mpjpe_is_root_aligned_and_in_millimetres():
 def test_reconstruction_detail_is_humanml3d_only():
     """The detail measures read HumanML3D's joint indices in metres: KIT-ML rows get none (they crashed on
     joint 21), HumanML3D rows get every column."""
-    from data.skeleton import HUMANML3D, KIT
     from pipelines.evaluation import detail
 
     rng = np.random.default_rng(4)

@@ -20,7 +20,7 @@ import pytest
 import torch
 
 from data.bvh import read_bvh
-from data.skeleton import HUMANML3D
+from data.skeleton import HUMANML3D, KIT
 from models.mld import MLDConfig, MLDDenoiser
 from models.vae import MotionVAE, MotionVAEConfig
 from pipelines.checkpoint import final_model_payload, save_final_model
@@ -263,12 +263,18 @@ def test_kit_outputs_are_drawn_and_saved_in_metres_and_paths_read_in_metres(tmp_
 
     import numpy as np
 
-    from data.skeleton import KIT
     from data.trajectories import make_trajectory
 
     joints = np.random.default_rng(0).normal(size=(12, KIT.joints_num, 3)) * 300.0 + [0.0, 900.0, 0.0]
     saved = generate.write_motion(joints, tmp_path / "m.npy", "c", "kit")
     np.testing.assert_allclose(np.load(saved), joints * 0.001, rtol=1e-6)
+    drawn = {}
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(generate, "render_strip", lambda j, path, caption, skeleton, target_path: drawn.update(
+            joints=j, target=target_path) or path)
+        generate.write_motion(joints, tmp_path / "m.png", "c", "kit", target_path=joints[:, 0])
+    np.testing.assert_allclose(drawn["joints"], joints * 0.001)
+    np.testing.assert_allclose(drawn["target"], joints[:, 0] * 0.001)
     bvh = generate.write_motion(joints, tmp_path / "m.bvh", "c", "kit")
     assert np.abs(read_bvh(bvh).joints(KIT.joint_names)[:, 0] - joints[:, 0]).max() < 1e-3  # mm, as written
     store = types.SimpleNamespace(meta={"skeleton": "kit"}, mean=np.full(KIT.joints_num * 12 - 1, 950.0))

@@ -27,22 +27,25 @@ def test_rest_pose_faces_plus_z() -> None:
     np.testing.assert_allclose(forward, [[0, 0, 1]], atol=1e-12)
 
 
-def test_joint_names_agree_with_the_sides_the_skeleton_uses() -> None:
-    """The names written into BVH files match face_joints (r_hip, l_hip, r_shoulder, l_shoulder) and the feet
-    (HumanML3D's KIT code: 11, 16, 5, 8 and fid_l 19, 20), and each side lies where its rest pose puts it."""
+def test_joint_names_name_the_side_the_rest_pose_puts_them_on() -> None:
+    """Each ``l_``/``left_`` joint lies on the body's left in the rest pose, the left judged from where the toes
+    point (y up: left = up x toe direction), not from labels. HumanML3D's face joints and feet carry its
+    names' sides; KIT's keep HumanML3D's indices, whose side labels are the MMM names' opposite."""
     for skeleton in (HUMANML3D, KIT):
-        names = skeleton.joint_names
-        r_hip, l_hip, r_shoulder, l_shoulder = (names[j] for j in skeleton.face_joints)
-        assert (r_hip[:2], l_hip[:2], r_shoulder[:2], l_shoulder[:2]) in {("ri", "le", "ri", "le"),
-                                                                           ("r_", "l_", "r_", "l_")}
-        assert all(names[j][0] == "l" for j in skeleton.feet_left)
-        assert all(names[j][0] == "r" for j in skeleton.feet_right)
         identity = np.tile([1.0, 0, 0, 0], (1, skeleton.joints_num, 1))
         rest = forward_kinematics(identity, np.zeros((1, 3)), skeleton.offsets(), skeleton)[0]
-        forward = R.normalize(facing_forward(rest[None], skeleton.face_joints, hip_quirk=False))[0]
-        left_of_body = np.cross([0.0, 1.0, 0.0], forward)  # y up: left = up x forward
-        for right, left in (skeleton.face_joints[:2], skeleton.face_joints[2:]):
-            assert np.dot(rest[left] - rest[right], left_of_body) > 0
+        ankle, toe = skeleton.feet_left
+        left_of_body = np.cross([0.0, 1.0, 0.0], rest[toe] - rest[ankle])
+        sides = {j: np.sign(np.dot(rest[j] - rest[0], left_of_body)) for j in range(skeleton.joints_num)}
+        named = [(j, name) for j, name in enumerate(skeleton.joint_names) if name.startswith(("l", "r"))]
+        assert len(named) >= 16
+        for j, name in named:
+            if sides[j] != 0:
+                assert sides[j] == (1 if name.startswith("l") else -1), (skeleton.name, name)
+    hml = [HUMANML3D.joint_names[j] for j in (*HUMANML3D.face_joints, *HUMANML3D.feet_left)]
+    assert hml == ["right_hip", "left_hip", "right_shoulder", "left_shoulder", "left_ankle", "left_foot"]
+    kit = [KIT.joint_names[j] for j in (*KIT.face_joints, *KIT.feet_left)]
+    assert kit == ["l_hip", "r_hip", "l_shoulder", "r_shoulder", "r_mt", "r_toe"]
 
 
 def test_hip_quirk_reverses_only_the_hip_term() -> None:

@@ -349,7 +349,7 @@ def test_mld_rows_start_their_ddim_grid_at_pure_noise(schedule: NoiseSchedule) -
     from models.generator import TextBatch
     from pipelines.mld_family import MLDGenerator, ddim_spacing
 
-    assert [ddim_spacing(n, 1000) for n in (50, 10, 4, 2, 1)] == ["leading"] * 2 + ["trailing"] * 3
+    assert [ddim_spacing(n, 1000) for n in (999, 150, 50, 10, 9, 4, 2, 1, 1000)] == ["leading"] * 4 + ["trailing"] * 5
     net, vae = _denoiser().eval(), _vae().eval()
     seen: list[list[int]] = []
     forward = net.forward
@@ -361,3 +361,6 @@ def test_mld_rows_start_their_ddim_grid_at_pure_noise(schedule: NoiseSchedule) -
         MLDGenerator("MLD", net, vae, schedule, steps, 1.0).sample(text, torch.tensor([6]).numpy(), seed=0)
         assert len(seen) == steps and seen[0] == [first]
     assert seen == [[999]]
+    seen.clear()
+    MLDGenerator("MLD", net, vae, schedule, 1000, 1.0).sample(text, torch.tensor([6]).numpy(), seed=0)
+    assert seen[0] == [999] and seen[-1] == [0] and len(seen) == 1000
