@@ -71,7 +71,7 @@ import pyarrow.parquet as pq
 from data.bvh import write_bvh
 from data.control import CONTROL_JOINTS
 from data.physics import foot_skating_ratio
-from data.render import render_animation, render_strip
+from data.render import joints_of, render_animation, render_strip
 from data.skeleton import get_skeleton
 from data.trajectories import SHAPES, load_trajectory, make_trajectory
 from models.generator import ControlledGenerator, Hint
@@ -321,7 +321,7 @@ def write_motion(joints: np.ndarray, path: Path, caption: str, skeleton_name: st
     fmt = path.suffix.lower().lstrip(".")
     if fmt == "bvh":
         return write_bvh(joints, skeleton, path, skeleton.fps)
-    metres = joints * skeleton.unit
+    metres = joints_of(joints, skeleton=skeleton)
     target = None if target_path is None else target_path * skeleton.unit
     if fmt == "npy":
         np.save(path, metres.astype(np.float32))
