@@ -5,10 +5,11 @@ with a mask (B, T, J) bool, True at the controlled (frame, joint) entries; every
 mask is ignored. Padded frames (t >= length) are never controlled.
 
 Densities (MotionLCM's ``TEST_DENSITY``): ``"100%"`` and ``"25%"`` control that share of each
-motion's frames (at least one), an integer string (``"5"``, ``"2"``, ``"1"``) that many frames
-(at most the motion's length); frames are drawn at random without replacement. Training draws,
-per sample, one joint of ``train_joints`` and a uniform number of frames in [1, T - 1] (T the
-sample's length; 1 when T = 1), MotionLCM's ``TRAIN_DENSITY: random``.
+motion's frames, rounded down as MotionLCM's ``int(length * density / 100)`` (at least one); an
+integer string (``"5"``, ``"2"``, ``"1"``) that many frames (at most the motion's length); frames
+are drawn at random without replacement. Training draws, per sample, one joint of
+``train_joints`` and a uniform number of frames in [1, T - 1] (T the sample's length; 1 when
+T = 1), MotionLCM's ``TRAIN_DENSITY: random``.
 """
 
 from __future__ import annotations
@@ -37,7 +38,7 @@ def keyframe_count(length: int, density: str) -> int:
         share = float(density[:-1])
         if not 0 < share <= 100:
             raise ValueError(f"control density {density!r}: a percentage must lie in (0, 100]")
-        return max(1, min(length, round(length * share / 100)))
+        return max(1, min(length, int(length * share / 100)))
     if not density.isdigit() or int(density) < 1:
         raise ValueError(f"control density {density!r}: use a percentage ('100%', '25%') or a frame count ('5')")
     return min(length, int(density))

@@ -48,7 +48,7 @@ import torch
 from torch import Tensor, nn
 
 from data.features import recover_from_ric
-from models.diffusion import NoiseSchedule, lcm_consistency_fn, lcm_training_timesteps
+from models.diffusion import NoiseSchedule, lcm_consistency_fn, lcm_training_timesteps, normal, uniform
 from models.mld import MLDDenoiser
 from models.motionlcm import guidance_embedding
 from models.transformer import SkipTransformer, lengths_to_mask, sinusoidal_positions
@@ -232,17 +232,17 @@ def controlnet_loss(
         t, _ = lcm_training_timesteps(b, schedule.num_steps, num_ddim_steps, generator, z0.device)
     else:
         t = training_timesteps(timesteps, b, schedule.num_steps, generator).to(z0.device)
-    z_t = schedule.q_sample(z0, t, torch.randn(z0.shape, generator=generator, device=z0.device, dtype=z0.dtype))
-    w = w_range[0] + (w_range[1] - w_range[0]) * torch.rand(b, generator=generator, device=z0.device)
+    z_t = schedule.q_sample(z0, t, normal(z0.shape, z0, generator))
+    w = w_range[0] + (w_range[1] - w_range[0]) * uniform((b,), z0, generator)
     if text_dropout > 0:
-        drop = torch.rand(b, generator=generator, device=z0.device) < text_dropout
+        drop = uniform((b,), z0, generator) < text_dropout
         text_emb = torch.where(drop[:, None], student.null_text_like(text_emb), text_emb)
         text_mask = None if text_mask is None else text_mask & ~drop[:, None]
     words = {"time_cond": guidance_embedding(w), "text_tokens": text_tokens, "text_mask": text_mask}
+    mask = mask & lengths_to_mask(lengths, hint.shape[1]).to(mask.device)[..., None]  # padding is never a hint
     out = ControlledStudent(student, controlnet, hint, mask)(z_t, t, text_emb, **words)
     z0_hat = lcm_consistency_fn(schedule, out, z_t, t, student.config.prediction_type)
     latent = ((z0_hat - z0) ** 2).mean()
-    mask = mask & lengths_to_mask(lengths, hint.shape[1]).to(mask.device)[..., None]
     with torch.set_grad_enabled(torch.is_grad_enabled() and control_weight > 0):
         joints = decode_joints(vae, z0_hat, lengths, hint.shape[1], mean, std, student.config.latent_scale)
         control = control_loss(joints, hint, mask)

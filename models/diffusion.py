@@ -336,9 +336,10 @@ class NoiseSchedule:
 def sample_timesteps(
     batch: int, num_steps: int, generator: torch.Generator | None = None, device: torch.device | str | None = None
 ) -> Tensor:
-    """Training timesteps ``t ~ U{0..T-1}``, int64 (B,) (MLD, MotionDiffuse)."""
-    device = _device(generator, device)
-    return torch.randint(0, num_steps, (batch,), generator=generator, device=device)
+    """Training timesteps ``t ~ U{0..T-1}``, int64 (B,) on ``device`` (default: the generator's), drawn on
+    the generator's device (:func:`rng_device`) (MLD, MotionDiffuse)."""
+    dev = _device(generator, device)
+    return torch.randint(0, num_steps, (batch,), generator=generator, device=rng_device(generator, dev)).to(dev)
 
 
 def condition_dropout(
@@ -347,10 +348,10 @@ def condition_dropout(
     """Which samples lose their condition for classifier-free guidance (Ho & Salimans 2022): (B,) bool on
     ``device``, each True w.p. ``p``, decided by one uniform per sample drawn on the generator's device
     (none drawn when p <= 0). MLD, EMDM and MotionDiffuse train with it."""
-    dev = torch.device(device) if device is not None else _device(generator, None)
+    dev = _device(generator, device)
     if p <= 0:
         return torch.zeros(batch, dtype=torch.bool, device=dev)
-    draw = torch.rand(batch, generator=generator, device=generator.device if generator is not None else dev)
+    draw = torch.rand(batch, generator=generator, device=rng_device(generator, dev))
     return (draw < p).to(dev)
 
 
@@ -367,13 +368,29 @@ class StepOutput(NamedTuple):
 
 
 def _device(generator: torch.Generator | None, device: torch.device | str | None) -> torch.device:
-    if device is not None:
-        return torch.device(device)
-    return generator.device if generator is not None else torch.device("cpu")
+    """Where a draw's result goes: ``device``, else the generator's device, else the CPU."""
+    return torch.device(device) if device is not None else rng_device(generator, "cpu")
 
 
-def _randn_like(x: Tensor, generator: torch.Generator | None) -> Tensor:
-    return torch.randn(x.shape, generator=generator, device=x.device, dtype=x.dtype)
+def rng_device(generator: torch.Generator | None, fallback: torch.device | str) -> torch.device:
+    """Where a random draw happens: on ``generator``'s device, else (torch's global RNG) on ``fallback``.
+
+    Every draw of the models' losses and samplers goes through here and is then moved to the tensors'
+    device, so a seeded CPU generator gives the same numbers whether the networks run on the CPU or a GPU
+    (a CUDA tensor cannot be drawn from a CPU generator at all).
+    """
+    return generator.device if generator is not None else torch.device(fallback)
+
+
+def normal(shape: Sequence[int], like: Tensor, generator: torch.Generator | None) -> Tensor:
+    """N(0, I) of ``shape`` drawn on :func:`rng_device`, returned on ``like``'s device and dtype."""
+    dev = rng_device(generator, like.device)
+    return torch.randn(tuple(shape), generator=generator, device=dev, dtype=like.dtype).to(like.device)
+
+
+def uniform(shape: Sequence[int], like: Tensor, generator: torch.Generator | None) -> Tensor:
+    """U[0, 1) of ``shape`` drawn on :func:`rng_device`, returned on ``like``'s device (float32)."""
+    return torch.rand(tuple(shape), generator=generator, device=rng_device(generator, like.device)).to(like.device)
 
 
 def _initial_noise(
@@ -387,7 +404,8 @@ def _initial_noise(
         if tuple(x_T.shape) != tuple(shape):
             raise ValueError(f"x_T has shape {tuple(x_T.shape)}, expected {tuple(shape)}")
         return x_T
-    return torch.randn(tuple(shape), generator=generator, device=_device(generator, device), dtype=dtype)
+    dev = _device(generator, device)
+    return torch.randn(tuple(shape), generator=generator, device=rng_device(generator, dev), dtype=dtype).to(dev)
 
 
 # --------------------------------------------------------------------------------------------------
@@ -424,7 +442,7 @@ def ddpm_step(
     nonzero = _as_long(t) > 0
     if not bool(nonzero.any()):
         return StepOutput(mean, x0)
-    noise = _randn_like(x_t, generator) if noise is None else noise
+    noise = normal(x_t.shape, x_t, generator) if noise is None else noise
     return StepOutput(mean + _bcast(nonzero, x_t) * (0.5 * log_var).exp() * noise, x0)
 
 
@@ -544,7 +562,7 @@ def ddim_step(
     sigma = eta * ((1.0 - ab_prev) / (1.0 - ab_t) * (1.0 - ab_t / ab_prev)).clamp(min=0).sqrt()
     prev = ab_prev.sqrt() * x0 + (1.0 - ab_prev - sigma**2).clamp(min=0).sqrt() * eps
     if eta > 0:
-        noise = _randn_like(x_t, generator) if noise is None else noise
+        noise = normal(x_t.shape, x_t, generator) if noise is None else noise
         prev = prev + sigma * noise
     return StepOutput(prev, x0)
 
@@ -762,9 +780,10 @@ def lcm_training_timesteps(
     ``t_n`` is the previous grid point, or 0 at the first one (where MotionLCM's solver then uses
     ``alphas_cumprod[0]`` and the target's c_skip(0) = 1 makes ``f(z_n, 0) = z_n``).
     """
-    grid = lcm_solver_timesteps(num_train_steps, num_ddim_steps).to(_device(generator, device))
-    idx = torch.randint(0, num_ddim_steps, (batch,), generator=generator, device=grid.device)
-    t = grid[idx]
+    dev = _device(generator, device)
+    grid = lcm_solver_timesteps(num_train_steps, num_ddim_steps).to(dev)
+    idx = torch.randint(0, num_ddim_steps, (batch,), generator=generator, device=rng_device(generator, dev))
+    t = grid[idx.to(dev)]
     return t, (t - num_train_steps // num_ddim_steps).clamp(min=0)
 
 
@@ -851,7 +870,7 @@ def lcm_multistep_sample(
         )
         if i + 1 == len(grid):
             return denoised
-        x = schedule.q_sample(denoised, grid[i + 1], _randn_like(denoised, generator))
+        x = schedule.q_sample(denoised, grid[i + 1], normal(denoised.shape, denoised, generator))
     return x
 
 

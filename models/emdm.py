@@ -137,7 +137,7 @@ from torch.nn.attention import SDPBackend, sdpa_kernel
 
 from data.features import feature_groups, recover_from_ric
 from data.skeleton import SKELETONS
-from models.diffusion import cfg_combine, condition_dropout, sample_timesteps
+from models.diffusion import cfg_combine, condition_dropout, normal, sample_timesteps
 from models.patches import from_output_patches, output_width, to_patches
 from models.transformer import PositionalEncoding, TransformerLayer, eval_mode, lengths_to_mask, timestep_embedding
 
@@ -162,16 +162,6 @@ class Conditioning(NamedTuple):
 # --------------------------------------------------------------------------------------------------
 # Small helpers
 # --------------------------------------------------------------------------------------------------
-
-
-def _rng_device(generator: torch.Generator | None, fallback: torch.device) -> torch.device:
-    return generator.device if generator is not None else fallback
-
-
-def _randn(shape: Sequence[int], like: Tensor, generator: torch.Generator | None) -> Tensor:
-    """N(0, I) of ``shape`` drawn on the generator's device, returned on ``like``'s device and dtype."""
-    dev = _rng_device(generator, like.device)
-    return torch.randn(tuple(shape), generator=generator, device=dev, dtype=like.dtype).to(like.device)
 
 
 def _valid_mask(lengths: Lengths, num_frames: int, device: torch.device) -> Tensor:
@@ -280,8 +270,8 @@ def q_sample_pairs(
     (:meth:`EMDMSchedule.q_step`), so the pair is a consecutive draw of one forward trajectory. Both
     noises come from ``generator``.
     """
-    x_t = schedule.q_sample(x0, t, _randn(x0.shape, x0, generator))
-    return x_t, schedule.q_step(x_t, t, _randn(x0.shape, x0, generator))
+    x_t = schedule.q_sample(x0, t, normal(x0.shape, x0, generator))
+    return x_t, schedule.q_step(x_t, t, normal(x0.shape, x0, generator))
 
 
 # --------------------------------------------------------------------------------------------------
@@ -822,7 +812,7 @@ def discriminator_step_losses(
     """
     cfg = generator.config
     b = x0.shape[0]
-    t = sample_timesteps(b, schedule.num_steps, generator_rng, _rng_device(generator_rng, x0.device)).to(x0.device)
+    t = sample_timesteps(b, schedule.num_steps, generator_rng, x0.device)
     x_t, x_next = q_sample_pairs(schedule, x0, t, generator_rng)
     scale = lazy_r1_scale(step, cfg.r1_interval)
     if scale > 0:
@@ -835,9 +825,9 @@ def discriminator_step_losses(
         r1 = real_logits.new_zeros(())
     with torch.no_grad():
         drop = condition_dropout(b, cfg.p_uncond, generator_rng, x0.device)
-        x0_hat = generator(x_next, t, _randn((b, cfg.z_dim), x0, generator_rng), cond, lengths, drop_cond=drop,
+        x0_hat = generator(x_next, t, normal((b, cfg.z_dim), x0, generator_rng), cond, lengths, drop_cond=drop,
                            words=words)
-        fake_t = schedule.posterior_sample(x0_hat, x_next, t, _randn(x0.shape, x0, generator_rng))
+        fake_t = schedule.posterior_sample(x0_hat, x_next, t, normal(x0.shape, x0, generator_rng))
     fake_logits = discriminator(fake_t, x_next, t, cond, lengths)
     real, fake = F.softplus(-real_logits).mean(), F.softplus(fake_logits).mean()
     return {"real": real, "fake": fake, "r1": r1, "total": real + fake + scale * r1}
@@ -866,12 +856,12 @@ def generator_step_losses(
     """
     cfg = generator.config
     b = x0.shape[0]
-    t = sample_timesteps(b, schedule.num_steps, generator_rng, _rng_device(generator_rng, x0.device)).to(x0.device)
+    t = sample_timesteps(b, schedule.num_steps, generator_rng, x0.device)
     _, x_next = q_sample_pairs(schedule, x0, t, generator_rng)
     drop = condition_dropout(b, cfg.p_uncond, generator_rng, x0.device)
-    x0_hat = generator(x_next, t, _randn((b, cfg.z_dim), x0, generator_rng), cond, lengths, drop_cond=drop,
+    x0_hat = generator(x_next, t, normal((b, cfg.z_dim), x0, generator_rng), cond, lengths, drop_cond=drop,
                        words=words)
-    fake_t = schedule.posterior_sample(x0_hat, x_next, t, _randn(x0.shape, x0, generator_rng))
+    fake_t = schedule.posterior_sample(x0_hat, x_next, t, normal(x0.shape, x0, generator_rng))
     adv = g_adversarial_loss(discriminator(fake_t, x_next, t, cond, lengths))
     geo = geometric_losses(
         x0_hat, x0, lengths, mean, std, cfg.joints_num, weight=cfg.geometric_weight, lam=cfg.geo_lambda,
@@ -966,15 +956,15 @@ def sample_emdm(
     valid = _valid_mask(lengths_t, n, device)[..., None]
     dtype = next(generator.parameters()).dtype
     ref = torch.empty(0, device=device, dtype=dtype)
-    x = _randn((b, n, cfg.feature_dim), ref, generator_rng) if x_T is None else x_T.to(device, dtype)
+    x = normal((b, n, cfg.feature_dim), ref, generator_rng) if x_T is None else x_T.to(device, dtype)
     x = torch.where(valid, x, 0.0)
     with eval_mode(generator):
         lengths_g, conditioning = guidance_batch(generator, cond, lengths_t, guidance, words)
         for step in reversed(range(schedule.num_steps)):
             t = torch.full((b,), step, dtype=torch.long, device=device)
-            z = _randn((b, cfg.z_dim), ref, generator_rng)
+            z = normal((b, cfg.z_dim), ref, generator_rng)
             x0_hat = _guided(generator, x, t, z, lengths_g, conditioning, guidance)
             if step == 0:
                 return x0_hat
-            x = torch.where(valid, schedule.posterior_sample(x0_hat, x, t, _randn(x.shape, ref, generator_rng)), 0.0)
+            x = torch.where(valid, schedule.posterior_sample(x0_hat, x, t, normal(x.shape, ref, generator_rng)), 0.0)
     raise AssertionError("unreachable: a schedule has at least one step")

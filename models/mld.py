@@ -66,6 +66,8 @@ from models.diffusion import (
     classifier_free_guidance,
     condition_dropout,
     ddim_sample,
+    normal,
+    rng_device,
     sample_timesteps,
 )
 from models.transformer import (
@@ -254,10 +256,6 @@ class MLDDenoiser(nn.Module):
 # --------------------------------------------------------------------------------------------------
 
 
-def _gen_device(generator: torch.Generator | None, fallback: torch.device) -> torch.device:
-    return generator.device if generator is not None else fallback
-
-
 def drop_text(
     text_emb: Tensor,
     p: float,
@@ -303,9 +301,8 @@ def mld_loss(
     type are always read from ``denoiser``).
     """
     net = denoiser if net is None else net
-    dev = _gen_device(generator, z0.device)
-    t = sample_timesteps(z0.shape[0], schedule.num_steps, generator, dev).to(z0.device)
-    noise = torch.randn(z0.shape, generator=generator, device=dev, dtype=z0.dtype).to(z0.device)
+    t = sample_timesteps(z0.shape[0], schedule.num_steps, generator, z0.device)
+    noise = normal(z0.shape, z0, generator)
     text, mask = drop_text(text_emb, p_uncond, generator, denoiser.null_text, text_mask)
     pred = net(schedule.q_sample(z0, t, noise), t, text, text_tokens=text_tokens, text_mask=mask,
                     time_cond=time_cond)
@@ -356,15 +353,14 @@ def sample_mld(
     guided epsilon ``eps_u + guidance (eps_c - eps_u)`` (one batched call on ``[null; text]``; guidance 1
     skips the unconditional pass); then ``vae.decode_by_length(latent_scale * z_0, lengths)`` with
     ``T = num_frames`` or ``max(lengths)``, padded frames 0. ``latent_scale`` None uses the denoiser's
-    config. Both networks run in eval mode under no_grad (their modes are restored). With eta > 0 the
-    generator must live on the networks' device.
+    config. Both networks run in eval mode under no_grad (their modes are restored).
     """
     cfg = denoiser.config
     scale = cfg.latent_scale if latent_scale is None else latent_scale
     device = text_emb.device
     shape = (text_emb.shape[0], cfg.latent_tokens, cfg.latent_dim)
     if x_T is None:
-        x_T = torch.randn(shape, generator=generator, device=_gen_device(generator, device)).to(device)
+        x_T = torch.randn(shape, generator=generator, device=rng_device(generator, device)).to(device)
 
     def model_fn(x: Tensor, t: Tensor, text_emb: Tensor, **tokens: Tensor) -> Tensor:
         return denoiser(x, t, text_emb, **tokens)

@@ -158,6 +158,8 @@ from models.diffusion import (
     ddim_sample,
     ddpm_sample,
     linear_betas,
+    normal,
+    rng_device,
     sample_timesteps,
     wiener_taps,
 )
@@ -561,10 +563,6 @@ class MotionDiffuse(nn.Module):
 # --------------------------------------------------------------------------------------------------
 
 
-def _gen_device(generator: torch.Generator | None, fallback: torch.device) -> torch.device:
-    return generator.device if generator is not None else fallback
-
-
 def null_caption(batch: int, length: int, dim: int, device: torch.device | str | None = None,
                  dtype: torch.dtype = torch.float32) -> tuple[Tensor, Tensor]:
     """The null caption (module docstring item 13) as word states (B, L, E) of zeros and a mask (B, L) with
@@ -632,10 +630,9 @@ def training_loss(
     dropout of :func:`drop_captions`, all from ``generator`` in that order;
     ``x_t = schedule.q_sample(x0, t, eps)``. A scalar over the whole batch (the code's mean).
     """
-    dev = _gen_device(generator, x0.device)
     b, n, d = x0.shape
-    t = sample_timesteps(b, schedule.num_steps, generator, dev).to(x0.device)
-    noise = torch.randn(x0.shape, generator=generator, device=dev, dtype=x0.dtype).to(x0.device)
+    t = sample_timesteps(b, schedule.num_steps, generator, x0.device)
+    noise = normal(x0.shape, x0, generator)
     lengths_t = torch.as_tensor(lengths, device=x0.device).long()
     valid = lengths_to_mask(lengths_t, n)[..., None]
     word_states, word_mask = drop_captions(word_states, word_mask, p_uncond, generator)
@@ -681,7 +678,7 @@ def sample_motiondiffuse(
     n = int(lengths_t.max()) if num_frames is None else int(num_frames)
     shape = (int(lengths_t.shape[0]), n, cfg.feature_dim)
     if x_T is None:
-        x_T = torch.randn(shape, generator=generator, device=_gen_device(generator, device), dtype=dtype)
+        x_T = torch.randn(shape, generator=generator, device=rng_device(generator, device), dtype=dtype)
     x_T = x_T.to(device, dtype)
     with eval_mode(model):
         text = guided_text(model, word_states, word_mask, guidance)

@@ -43,6 +43,8 @@ from models.diffusion import (
     lcm_consistency_fn,
     lcm_multistep_sample,
     lcm_training_timesteps,
+    normal,
+    uniform,
 )
 from models.mld import MLDDenoiser
 from models.transformer import eval_mode, timestep_embedding
@@ -107,9 +109,9 @@ def lcm_distillation_loss(
     """
     b = z0.shape[0]
     t, t_prev = lcm_training_timesteps(b, schedule.num_steps, num_ddim_steps, generator, z0.device)
-    noise = torch.randn(z0.shape, generator=generator, device=z0.device, dtype=z0.dtype)
+    noise = normal(z0.shape, z0, generator)
     z_t = schedule.q_sample(z0, t, noise)
-    w = w_range[0] + (w_range[1] - w_range[0]) * torch.rand(b, generator=generator, device=z0.device)
+    w = w_range[0] + (w_range[1] - w_range[0]) * uniform((b,), z0, generator)
     w_emb = guidance_embedding(w)
     words = {"text_tokens": text_tokens, "text_mask": text_mask}
     # the student's parameterisation read from its EMA copy: under DDP the student is wrapped (no .config)

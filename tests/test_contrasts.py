@@ -187,3 +187,14 @@ def test_prompts_use_the_dataset_wording():
 
     words = {w.strip(",").lower() for pair in contrasts.PAIRS for p in pair.prompts for w in p.text.split()}
     assert words <= set(LEXICON) | {"jumps", "kicks", "waves", "walks", "turns"}
+
+
+def test_jitter_is_the_mean_length_of_the_second_difference():
+    """Constant velocity has no jitter; one joint of 22 accelerating at 0.02 m/frame² gives 0.02 / 22."""
+    n = np.arange(10, dtype=float)
+    steady = np.zeros((10, 22, 3))
+    steady[..., 0] = 0.1 * n[:, None]
+    assert contrasts.jitter(steady) == pytest.approx(0.0, abs=1e-12)
+    accelerating = np.zeros((10, 22, 3))
+    accelerating[:, 0, 0] = 0.01 * n**2
+    assert contrasts.jitter(accelerating) == pytest.approx(0.02 / 22, rel=1e-9)

@@ -152,11 +152,12 @@ def test_control_loss_known_values():
 def test_keyframe_counts_and_evaluation_masks():
     assert [keyframe_count(120, d) for d in ("100%", "25%", "5", "2", "1")] == [120, 30, 5, 2, 1]
     assert keyframe_count(3, "5") == 3 and keyframe_count(2, "25%") == 1
+    assert keyframe_count(199, "25%") == 49  # rounded down, as MotionLCM's int(199 * 25 / 100)
     for bad in ("0%", "150%", "many", "0"):
         with pytest.raises(ValueError, match="control density"):
             keyframe_count(10, bad)
     lengths = np.array([40, 17, 80])
-    for density, counts in (("100%", [40, 17, 80]), ("25%", [10, 4, 20]), ("5", [5, 5, 5])):
+    for density, counts in (("100%", [40, 17, 80]), ("25%", [10, 4, 20]), ("5", [5, 5, 5])):  # 17 / 4 -> 4
         mask = evaluation_mask(lengths, 80, J, [0, 21], density, np.random.default_rng(0))
         assert mask.shape == (3, 80, J)
         assert mask[:, :, 0].sum(1).tolist() == counts and np.array_equal(mask[:, :, 0], mask[:, :, 21])
@@ -214,6 +215,31 @@ def test_controlnet_loss_trains_only_the_controlnet_and_weights_the_control_term
     b["total"].backward()
     assert all(p.grad is not None and torch.isfinite(p.grad).all() for p in controlnet.parameters())
     assert all(p.grad is None for p in (*base.parameters(), *vae.parameters()))
+
+
+def test_controlnet_loss_never_reads_a_hint_on_padded_frames(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A mask entry past a motion's length reaches neither the ControlNet nor the control term: the loss equals
+    the loss of the mask cut to the lengths, and the control term sees only valid controlled entries."""
+    import models.controlnet as module
+
+    base, vae = student().requires_grad_(False), tiny_vae().requires_grad_(False)
+    controlnet = MotionControlNet(base, control_config())
+    randomise(controlnet)
+    x, lengths = batch(b=2, frames=12), torch.tensor([12, 9])
+    assert x["mask"][1, 9:].any()
+    seen, real = [], module.control_loss
+    monkeypatch.setattr(module, "control_loss", lambda j, h, m: seen.append(m) or real(j, h, m))
+    kwargs = {"mean": torch.zeros(D), "std": torch.full((D,), 0.1), "w_range": (1.0, 2.0),
+              "text_tokens": x["text_tokens"], "text_mask": x["text_mask"]}
+    cut = x["mask"] & (torch.arange(12)[None] < lengths[:, None])[..., None]
+    z0 = torch.randn(2, 2, 8, generator=torch.Generator().manual_seed(5))
+    with torch.no_grad():
+        a = controlnet_loss(controlnet, base, vae, SCHEDULE, z0, x["text_emb"], x["hint"], x["mask"], lengths,
+                            generator=torch.Generator().manual_seed(4), **kwargs)
+        b = controlnet_loss(controlnet, base, vae, SCHEDULE, z0, x["text_emb"], x["hint"], cut, lengths,
+                            generator=torch.Generator().manual_seed(4), **kwargs)
+    assert torch.equal(seen[0], cut) and torch.equal(seen[1], cut)
+    assert torch.equal(a["total"], b["total"])
 
 
 def test_training_timesteps_draw_only_and_every_listed_value():

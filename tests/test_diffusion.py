@@ -495,3 +495,13 @@ def test_wiener_eig_floor_keeps_the_taps_finite_where_the_moments_are_not_positi
     torch.testing.assert_close(D.wiener_taps(valid, alphas, 3, eig_floor=1e-3), D.wiener_taps(valid, alphas, 3))
     with pytest.raises(ValueError, match="eig_floor"):
         D.wiener_taps(moments, alphas, 3, eig_floor=-1.0)
+
+
+def test_ddpm_fixed_large_variance_is_beta_t() -> None:
+    """DDPM's sigma_t^2 = beta_t (fixed_large): with an x0 prediction of 0 and x_t = 1 the step is
+    coef2_t x_t + sqrt(beta_t) z."""
+    s = NoiseSchedule.from_name("linear", 100)
+    x0, xt = torch.zeros(1, 3, dtype=torch.float64), torch.ones(1, 3, dtype=torch.float64)
+    z = torch.randn(1, 3, dtype=torch.float64, generator=torch.Generator().manual_seed(0))
+    out = D.ddpm_step(s, x0, xt, torch.tensor([50]), prediction_type="sample", variance_type="fixed_large", noise=z)
+    torch.testing.assert_close(out.prev_sample, s.posterior_mean_coef2[50] * xt + s.betas[50].sqrt() * z)

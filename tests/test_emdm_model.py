@@ -665,6 +665,31 @@ def _grads_ok(module: nn.Module) -> bool:
     return all(p.grad is not None and torch.isfinite(p.grad).all() for p in module.parameters())
 
 
+def test_discriminator_step_scores_real_pairs_as_real_and_fake_pairs_as_fake() -> None:
+    """With a D that says 2 to every pair: real term softplus(-2) = 0.126928, fake term softplus(2) = 2.126928."""
+    gen, _ = _nets()
+
+    def says_two(x_t, x_next, t, cond, lengths, **_):
+        return torch.full((x_t.shape[0],), 2.0)
+
+    x0 = torch.randn(2, 6, D, generator=_gen(1))
+    d = discriminator_step_losses(gen, says_two, EMDMSchedule(), x0, torch.randn(2, E), [6, 4], step=1,
+                                  generator_rng=_gen(2))
+    assert d["real"].item() == pytest.approx(0.126928, abs=1e-6)
+    assert d["fake"].item() == pytest.approx(2.126928, abs=1e-6)
+
+
+def test_generators_adversarial_term_reaches_the_generator() -> None:
+    """The adversarial term judges G's own x0_hat (through the posterior sample), so it has gradients in G."""
+    gen, disc = _nets()
+    disc.requires_grad_(False)
+    x0 = torch.randn(2, 16, D, generator=_gen(1))
+    out = generator_step_losses(gen, disc, EMDMSchedule(), x0, torch.randn(2, E), [16, 10], torch.zeros(D),
+                                torch.ones(D), generator_rng=_gen(2))
+    grads = torch.autograd.grad(out["adv"], list(gen.parameters()), allow_unused=True)
+    assert sum(float(g.abs().sum()) for g in grads if g is not None) > 0
+
+
 def test_one_training_step_of_d_and_g(real) -> None:
     x0, mean, std = real
     gen, disc = _nets(p_uncond=0.5)

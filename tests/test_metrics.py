@@ -281,3 +281,28 @@ def test_physical_metrics_sliding_foot() -> None:
     assert out["floating_mm"] == pytest.approx((20.0 + 0.0) / 2)
     with pytest.raises(ValueError):
         physical_metrics([], HUMANML3D)
+
+
+def test_control_errors_count_an_error_only_above_the_threshold() -> None:
+    """OmniControl's strict ``e > th``: an error of exactly 20 cm or 50 cm is not a miss at that threshold."""
+    hint = np.zeros((2, 1, 1, 3))
+    pred = hint.copy()
+    pred[0, 0, 0], pred[1, 0, 0] = [0.2, 0.0, 0.0], [0.5, 0.0, 0.0]
+    out = metrics.control_errors(pred, hint, np.ones((2, 1, 1), dtype=bool))
+    assert out["traj_err_20cm"] == 0.5 and out["loc_err_20cm"] == 0.5
+    assert out["traj_err_50cm"] == 0.0 and out["loc_err_50cm"] == 0.0
+    assert out["avg_err_m"] == pytest.approx(0.35)
+
+
+def test_diversity_and_multimodality_pair_two_draws_without_replacement() -> None:
+    """The pairs are two index sets, each drawn without replacement from one generator in that order."""
+    emb = np.random.default_rng(8).normal(size=(301, 4))
+    g = np.random.default_rng(9)
+    a, b = g.choice(301, 300, replace=False), g.choice(301, 300, replace=False)
+    expected = np.linalg.norm(emb[a] - emb[b], axis=1).mean()
+    assert metrics.diversity(emb, 300, rng=9) == pytest.approx(expected, rel=1e-12)
+    per_text = np.random.default_rng(10).normal(size=(3, 11, 4))
+    g = np.random.default_rng(11)
+    a, b = g.choice(11, 10, replace=False), g.choice(11, 10, replace=False)
+    expected = np.linalg.norm(per_text[:, a] - per_text[:, b], axis=-1).mean()
+    assert metrics.multimodality(per_text, 10, rng=11) == pytest.approx(expected, rel=1e-12)

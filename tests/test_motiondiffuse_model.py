@@ -273,6 +273,25 @@ def test_training_loss_of_oracle_is_zero_and_of_zero_model_is_masked_noise_energ
     assert float(loss) == pytest.approx(expected, rel=1e-5)
 
 
+def test_training_loss_draws_t_over_every_level_from_its_generator() -> None:
+    """t ~ U{0..T-1} is the generator's first draw (T - 1, the noisiest level, included)."""
+    schedule = MotionDiffuseConfig(**TINY).make_schedule()
+    seen: list[Tensor] = []
+
+    def records_t(x_t: Tensor, t: Tensor, *_: object) -> Tensor:
+        seen.append(t.clone())
+        return torch.zeros_like(x_t)
+
+    ws, wm = _text(b=2)
+    highest = 0
+    for seed in range(60):
+        training_loss(records_t, schedule, torch.randn(2, 8, D), torch.tensor([8, 5]), ws, wm, _gen(seed))
+        expected = torch.randint(0, schedule.num_steps, (2,), generator=_gen(seed))
+        assert torch.equal(seen[-1], expected)
+        highest = max(highest, int(seen[-1].max()))
+    assert highest == schedule.num_steps - 1
+
+
 def test_training_loss_backpropagates_into_the_network() -> None:
     model = _model(randomise=False).train()
     schedule = model.config.make_schedule()

@@ -120,3 +120,10 @@ def test_axis_angle_small_and_large(angle: float) -> None:
     axis = np.array([0.6, 0.0, 0.8])
     q = R.axis_angle_to_quat(axis * angle)
     np.testing.assert_allclose(q, [np.cos(angle / 2), *(axis * np.sin(angle / 2))], atol=1e-15)
+
+
+def test_matrix_to_quat_returns_the_sign_with_nonnegative_w():
+    """A quaternion and its negative are one rotation; the round trip gives the one with w >= 0."""
+    q = np.array([[-0.1, 0.9, 0.3, 0.3], [-0.2, 0.1, -0.3, 0.9]])
+    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
+    np.testing.assert_allclose(R.matrix_to_quat(R.quat_to_matrix(q)), -q, atol=1e-12)
