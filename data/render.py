@@ -160,9 +160,12 @@ def _title(ax: Axes, caption: str | None, width: int, size: float) -> Text | Non
 
 
 def facing_azimuth(joints: np.ndarray, skeleton: Skeleton = HUMANML3D, offset: float = 35.0) -> float:
-    """Camera azimuth (degrees) ``offset`` degrees round from the front of the body at frame 0."""
+    """Camera azimuth (degrees) ``offset`` degrees round from the front of the body at frame 0.
+
+    The body's left is the face joints' named left times ``skeleton.front`` (KIT-ML's named sides are
+    the other way round, and its motions face -z)."""
     r_hip, l_hip = skeleton.face_joints[:2]
-    left = joints[0, l_hip] - joints[0, r_hip]
+    left = skeleton.front * (joints[0, l_hip] - joints[0, r_hip])
     return float(np.degrees(np.arctan2(-left[2], left[0]))) + offset
 
 

@@ -73,6 +73,25 @@ class Skeleton:
         """Contact joints in feature order: left ankle, left toe, right ankle, right toe."""
         return (*self.feet_left, *self.feet_right)
 
+    @property
+    def front(self) -> float:
+        """+1.0 if a motion's body faces +z in the features' canonical frame, -1.0 if it faces -z.
+
+        Feature extraction turns frame 0's forward as the face joints name it, ``y x ((r_hip - l_hip) +
+        (r_shoulder - l_shoulder))``, onto +z. The body's real forward is where the rest pose's toes point
+        (+z); where the face joints' side labels name the other side (HumanML3D's KIT-ML code, see the KIT
+        skeleton below), the named forward is the body's back, and canonical motions face -z. The
+        presentation follows it: drawings look at the body's front, and ``generate``'s paths lead ahead.
+        """
+        rest = np.zeros((self.joints_num, 3))
+        for chain in self.kinematic_chain:  # each chain starts at the root or on an earlier chain
+            for parent, joint in zip(chain[:-1], chain[1:], strict=True):
+                rest[joint] = rest[parent] + self.raw_offsets[joint]
+        r_hip, l_hip, r_sho, l_sho = self.face_joints
+        named_forward = np.cross([0.0, 1.0, 0.0], (rest[r_hip] - rest[l_hip]) + (rest[r_sho] - rest[l_sho]))
+        toes = sum(rest[toe] - rest[ankle] for ankle, toe in (self.feet_left, self.feet_right))
+        return 1.0 if float(named_forward @ toes) > 0 else -1.0
+
     def offsets(self, bone_lengths: np.ndarray | None = None) -> np.ndarray:
         """(J, 3) bone vectors ``raw_offsets * lengths``; default: the target skeleton."""
         lengths = self.bone_lengths if bone_lengths is None else np.asarray(bone_lengths)

@@ -1,9 +1,10 @@
 """Target pelvis paths for trajectory-controlled generation (MotionLCM's motion ControlNet).
 
-A path is a (frames, 3) float32 array of pelvis positions in metres, on the axes of the generated
-motions: x to the left of the body (+x) or its right (-x), y up, z forward. Generated motions
-start at the origin facing +z, so every shape starts at (0, height, 0), heads forward (+z) and
-keeps the pelvis at a constant ``height``. Frame k lies at s = k / (frames - 1) of the way along
+A path is a (frames, 3) float32 array of pelvis positions in metres, on the axes of a body that
+starts at the origin facing +z: x to its left (+x) or its right (-x), y up, z forward. Every shape
+starts at (0, height, 0), heads forward (+z) and keeps the pelvis at a constant ``height``. HumanML3D's
+motions start so; KIT-ML's face -z (``data.skeleton.Skeleton.front``), and ``stages.generate`` turns
+the shapes half a turn for them. Frame k lies at s = k / (frames - 1) of the way along
 the path, and the shapes are parametrised by arc length, so consecutive frames are equally far
 apart (constant speed) and the path takes the whole clip, (frames - 1) / fps seconds.
 

@@ -332,15 +332,20 @@ def write_motion(joints: np.ndarray, path: Path, caption: str, skeleton_name: st
 
 
 def pelvis_path(trajectory: str, length: int, store: FeatureStore, size: float | None = None) -> np.ndarray:
-    """``--trajectory``: a shape of :data:`data.trajectories.SHAPES` at the mean pelvis height, or a ``.npy`` file,
-    both in metres; returned in the dataset's units (the hints the ControlNet was trained on)."""
-    unit = get_skeleton(store.meta["skeleton"]).unit
+    """``--trajectory`` in the dataset's units (the hints the ControlNet was trained on), from metres.
+
+    A shape of :data:`data.trajectories.SHAPES`, at the mean pelvis height, leads ahead of the body: it is
+    turned half a turn about y where the dataset's motions face -z (``Skeleton.front``, KIT-ML). A ``.npy``
+    file is taken on the axes of the motions ``generate`` writes, as they are.
+    """
+    skeleton = get_skeleton(store.meta["skeleton"])
     if trajectory in SHAPES:
-        return make_trajectory(trajectory, length, size=size, height=float(store.mean[3]) * unit) / unit
+        path = make_trajectory(trajectory, length, size=size, height=float(store.mean[3]) * skeleton.unit)
+        return path * np.array([skeleton.front, 1.0, skeleton.front], dtype=path.dtype) / skeleton.unit
     if trajectory.endswith(".npy"):
         if size is not None:
             raise ValueError("--size applies to the shapes, not to a .npy trajectory")
-        return load_trajectory(trajectory, length) / unit
+        return load_trajectory(trajectory, length) / skeleton.unit
     raise ValueError(f"--trajectory {trajectory!r}: use one of {', '.join(SHAPES)} or a .npy file")
 
 

@@ -258,7 +258,8 @@ def test_prompt_file_and_texts_to_bvh(small_store: dict[str, Any], bounds: tuple
 
 def test_kit_outputs_are_drawn_and_saved_in_metres_and_paths_read_in_metres(tmp_path: Path) -> None:
     """KIT-ML's joints are millimetres: .npy and the drawings get metres, .bvh keeps the skeleton's millimetres,
-    and a trajectory given in metres becomes a hint in millimetres (what its ControlNet was trained on)."""
+    and a trajectory given in metres becomes a hint in millimetres (what its ControlNet was trained on): a shape
+    leads ahead of the body (KIT-ML's face -z), a .npy stays on the axes generate writes."""
     import types
 
     import numpy as np
@@ -278,7 +279,9 @@ def test_kit_outputs_are_drawn_and_saved_in_metres_and_paths_read_in_metres(tmp_
     bvh = generate.write_motion(joints, tmp_path / "m.bvh", "c", "kit")
     assert np.abs(read_bvh(bvh).joints(KIT.joint_names)[:, 0] - joints[:, 0]).max() < 1e-3  # mm, as written
     store = types.SimpleNamespace(meta={"skeleton": "kit"}, mean=np.full(KIT.joints_num * 12 - 1, 950.0))
-    path = generate.pelvis_path("line", 30, store, size=2.0)
-    np.testing.assert_allclose(path, make_trajectory("line", 30, size=2.0, height=0.95) * 1000.0, rtol=1e-6)
+    path = generate.pelvis_path("line", 30, store, size=2.0)  # ahead of a KIT body: toward -z
+    ahead = make_trajectory("line", 30, size=2.0, height=0.95) * [-1.0, 1.0, -1.0]
+    np.testing.assert_allclose(path, ahead * 1000.0, rtol=1e-6)
+    assert path[-1, 2] == pytest.approx(-2000.0)
     np.save(tmp_path / "p.npy", np.linspace([0.0, 0.9, 0.0], [1.0, 0.9, 2.0], 30))
     np.testing.assert_allclose(generate.pelvis_path(str(tmp_path / "p.npy"), 30, store)[-1], [1000.0, 900.0, 2000.0])

@@ -6,6 +6,7 @@ import numpy as np
 import torch
 
 from data import rotations as R
+from data.features import features_from_joints, recover_from_ric
 from data.kinematics import facing_forward, forward_kinematics, inverse_kinematics, root_heading
 from data.skeleton import HUMANML3D, KIT, Skeleton
 
@@ -46,6 +47,29 @@ def test_joint_names_name_the_side_the_rest_pose_puts_them_on() -> None:
     assert hml == ["right_hip", "left_hip", "right_shoulder", "left_shoulder", "left_ankle", "left_foot"]
     kit = [KIT.joint_names[j] for j in (*KIT.face_joints, *KIT.feet_left)]
     assert kit == ["l_hip", "r_hip", "l_shoulder", "r_shoulder", "r_mt", "r_toe"]
+
+
+def walk_toward_the_toes(skeleton: Skeleton, frames: int = 12) -> np.ndarray:
+    """(T, J, 3) the rest pose turned 40 degrees about y, gliding 1.2 m/s along where its toes point."""
+    local = np.tile([1.0, 0, 0, 0], (frames, skeleton.joints_num, 1))
+    local[:, 0] = R.axis_angle_to_quat(np.array([0.0, np.radians(40.0), 0.0]))
+    ahead = np.array([np.sin(np.radians(40.0)), 0.0, np.cos(np.radians(40.0))])
+    root = ([0.0, 0.9, 0.0] + np.arange(frames)[:, None] * 1.2 / skeleton.fps * ahead) / skeleton.unit
+    return forward_kinematics(local, root, skeleton.offsets(), skeleton)
+
+
+def test_front_is_where_canonical_motions_face() -> None:
+    """Features turn the face joints' named forward onto +z. HumanML3D's bodies then face +z; KIT-ML's named
+    sides are the other way round, so its bodies face -z (``Skeleton.front``), judged from the toes and
+    from the recovered travel of a body walking toward its toes."""
+    assert (HUMANML3D.front, KIT.front) == (1.0, -1.0)
+    for skeleton in (HUMANML3D, KIT):
+        joints = recover_from_ric(features_from_joints(walk_toward_the_toes(skeleton), skeleton), skeleton.joints_num)
+        toes = sum(joints[0, toe] - joints[0, ankle] for ankle, toe in (skeleton.feet_left, skeleton.feet_right))
+        travel = joints[-1, 0] - joints[0, 0]
+        for direction in (toes, travel):
+            horizontal = direction[[0, 2]] / np.linalg.norm(direction[[0, 2]])
+            np.testing.assert_allclose(horizontal, [0.0, skeleton.front], atol=1e-6)
 
 
 def test_hip_quirk_reverses_only_the_hip_term() -> None:

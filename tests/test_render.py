@@ -7,7 +7,9 @@ import shutil
 import numpy as np
 import pytest
 from PIL import Image
+from test_kinematics import walk_toward_the_toes
 
+from data.features import features_from_joints, recover_from_ric
 from data.render import (
     AXES_TOP,
     TARGET_COLOR,
@@ -15,12 +17,13 @@ from data.render import (
     _limits,
     _view,
     contact_sheet,
+    facing_azimuth,
     joints_of,
     render_animation,
     render_frames,
     render_strip,
 )
-from data.skeleton import HUMANML3D
+from data.skeleton import HUMANML3D, KIT
 from data.synthetic import SyntheticConfig, generate_motion
 from data.trajectories import make_trajectory
 from stages import render as render_stage
@@ -225,3 +228,15 @@ def test_the_camera_shows_the_scene_not_its_mirror_image(azim, elev):
     left_hand, right_hand, head = np.array([0.7, 1.4, 0.0]), np.array([-0.7, 1.4, 0.0]), np.array([0.0, 1.7, 0.0])
     (lx, ly), (rx, _), (_, hy) = front.project(np.stack([left_hand, right_hand, head]))
     assert lx == pytest.approx(0.7) and rx == pytest.approx(-0.7) and hy > ly
+
+
+def test_the_camera_looks_at_the_front_of_every_skeletons_bodies():
+    """facing_azimuth(offset=0) puts the camera straight ahead of the body at frame 0, for KIT-ML's bodies too
+    (they face -z, and its face joints name the sides the other way round); the default offset turns it 35°."""
+    for skeleton in (HUMANML3D, KIT):
+        joints = recover_from_ric(features_from_joints(walk_toward_the_toes(skeleton), skeleton), skeleton.joints_num)
+        ahead = [0.0, skeleton.front]
+        for offset in (0.0, 35.0):
+            a = np.radians(facing_azimuth(joints, skeleton, offset=offset))
+            toward = [np.sin(a), np.cos(a)]  # the camera's horizontal direction from the body (Camera)
+            assert np.dot(toward, ahead) == pytest.approx(np.cos(np.radians(offset)), abs=1e-6), skeleton.name
