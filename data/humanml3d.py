@@ -288,6 +288,8 @@ class SplitData:
         items: items in split-file order (whole-clip item first, then spans in line order).
         skipped: problems of the clips dropped by ``on_error="skip"`` (empty in fail mode).
         filtered: clips and spans dropped by the standard length filter (not errors).
+        cut: caption spans that run past their clip's end and were cut to it, as the reference loader cuts
+            them (kept, not errors).
     """
 
     split: str
@@ -295,6 +297,7 @@ class SplitData:
     items: list[MotionItem] = field(default_factory=list)
     skipped: list[Problem] = field(default_factory=list)
     filtered: list[Problem] = field(default_factory=list)
+    cut: list[Problem] = field(default_factory=list)
 
 
 # --------------------------------------------------------------------------------------------
@@ -621,10 +624,9 @@ def _load_clip(
     return loaded, captions, problems + caption_problems
 
 
-def _span_frames(caption: Caption, fps: float, length: int) -> tuple[int, int]:
-    """Feature-frame range of a span caption, as ``motion[int(start*fps):int(end*fps)]``."""
-    start, end = int(caption.start * fps), int(caption.end * fps)
-    return min(start, length), min(end, length)
+def _span_frames(caption: Caption, fps: float) -> tuple[int, int]:
+    """Feature-frame range of a span caption before any cut to its clip: ``int(start*fps), int(end*fps)``."""
+    return int(caption.start * fps), int(caption.end * fps)
 
 
 def _clip_items(
@@ -635,26 +637,35 @@ def _clip_items(
     bounds: _Bounds,
     fps: float,
     text_path: Path,
-) -> tuple[list[MotionItem], list[Problem]]:
-    """Items of one clip that passed the clip-length filter, and the filtered spans."""
+) -> tuple[list[MotionItem], list[Problem], list[Problem]]:
+    """Items of one clip that passed the clip-length filter, the filtered spans and the spans cut to the clip.
+
+    A span is ``motion[int(start*fps):int(end*fps)]`` as in the reference loader, so a span that runs past
+    the clip's end is cut to it (and reported as cut); one that starts at or after the end is filtered.
+    """
     whole = tuple(c for c in captions if c.is_whole_clip)
     items = [MotionItem(clip_id, clip_id, whole, 0, length, action)] if whole else []
     filtered: list[Problem] = []
+    cut: list[Problem] = []
     used: dict[str, int] = {}
     for caption in captions:
         if caption.is_whole_clip:
             continue
-        start, end = _span_frames(caption, fps, length)
-        reason = bounds.reason(end - start)
+        first, last = _span_frames(caption, fps)
+        start, end = min(first, length), min(last, length)
+        span = f"span {caption.start}-{caption.end} s = frames [{first}, {last})"
+        after_end = f"starts at or after the clip's end ({length} frames)"
+        reason = after_end if first >= length else bounds.reason(end - start)
         if reason:
-            span = f"span {caption.start}-{caption.end} s = frames [{start}, {end})"
             filtered.append(Problem(str(text_path), f"{span}: {reason}: {caption.text!r}"))
             continue
+        if last > length:
+            cut.append(Problem(str(text_path), f"{span}: cut to [{start}, {end}) at the clip's end: {caption.text!r}"))
         base = f"{clip_id}@{start}-{end}"
         used[base] = used.get(base, 0) + 1
         item_id = base if used[base] == 1 else f"{base}~{used[base]}"
         items.append(MotionItem(item_id, clip_id, (caption,), start, end, action))
-    return items, filtered
+    return items, filtered, cut
 
 
 def _check_options(source: str, on_error: str, min_frames: int, max_frames: int) -> None:
@@ -740,8 +751,9 @@ def _add_clip(
         data.filtered.append(Problem(motion_path, f"clip {reason} (feature frames)"))
         return
     text_path = root / TEXTS_DIR / f"{clip_id}.txt"
-    items, filtered = _clip_items(clip_id, loaded.length, captions, action, bounds, fps, text_path)
+    items, filtered, cut = _clip_items(clip_id, loaded.length, captions, action, bounds, fps, text_path)
     data.filtered += filtered
+    data.cut += cut
     if not items:
         data.filtered.append(Problem(motion_path, "no item left: no whole-clip caption and every span filtered"))
         return

@@ -137,6 +137,17 @@ def _require_file(path: Path, what: str) -> None:
         raise FileNotFoundError(f"{what}: missing {path}")
 
 
+def _read_json_file(path: Path) -> dict[str, Any]:
+    """A JSON object from ``path``; a ValueError names the file and the reason when it is not one."""
+    try:
+        data = json.loads(path.read_text(encoding="utf-8"))
+    except (UnicodeDecodeError, json.JSONDecodeError) as err:
+        raise ValueError(f"{path}: not valid JSON ({err})") from None
+    if not isinstance(data, dict):
+        raise ValueError(f"{path}: expected a JSON object, got {type(data).__name__}")
+    return data
+
+
 def _check_texts(texts: Sequence[str]) -> list[str]:
     """Validate the input of :meth:`encode`; returns it as a list."""
     if isinstance(texts, str | bytes):
@@ -400,7 +411,7 @@ class MiniLMEncoder(_HFTextEncoder):
 
     def _read_json(self, rel: str) -> dict[str, Any]:
         f = self.path / rel
-        return json.loads(f.read_text(encoding="utf-8")) if f.is_file() else {}
+        return _read_json_file(f) if f.is_file() else {}
 
     def _preprocess(self, text: str) -> str:
         return text.lower() if self._lower else text
@@ -484,7 +495,7 @@ class CLIPTextEncoder(_HFTextEncoder):
         import torch
         from transformers import AutoTokenizer, CLIPTextConfig, CLIPTextModel, CLIPTextModelWithProjection
 
-        raw = json.loads((self.path / "config.json").read_text(encoding="utf-8"))
+        raw = _read_json_file(self.path / "config.json")
         if raw.get("model_type") == "clip":  # full CLIPModel: take its text config and projection size
             from transformers import CLIPConfig
 
@@ -564,5 +575,6 @@ def build_text_encoder(name: str, **kwargs: Any) -> TextEncoder:
     if key not in ENCODERS:
         raise ValueError(f"unknown text encoder {name!r}; valid: {', '.join(sorted(ENCODERS))}")
     if key == "clip" and kwargs.get("path") is None:
-        raise ValueError("text encoder 'clip' needs path=<local directory with a CLIP text model>")
+        raise ValueError("text encoder 'clip' needs path=<local directory with a CLIP text model> "
+                         "(features.text_encoder_path)")
     return ENCODERS[key](**kwargs)

@@ -204,6 +204,10 @@ def run(params: dict[str, Any]) -> Path:
         raise DatasetError([Problem(str(root), "no such dataset folder: point data.root at a folder in the HumanML3D "
                                                "layout (see the README)")])
 
+    # the text encoder first: a bad encoder path stops the stage before the motions are read
+    encoder = build_text_encoder(
+        feat_cfg["text_encoder"], path=feat_cfg["text_encoder_path"], max_length=feat_cfg["max_text_tokens"]
+    )
     splits = read_dataset(root, skeleton, data_cfg)
     feats, failed = clip_features(splits, root, skeleton, feat_cfg["workers"], data_cfg["on_error"])
     train_clips = {item.clip_id for item in splits["train"].items if item.clip_id in feats}
@@ -212,9 +216,6 @@ def run(params: dict[str, Any]) -> Path:
     mean, std = grouped_mean_std(np.concatenate([feats[c] for c in sorted(train_clips)]), skeleton.joints_num)
     check_stats(mean, std, out, skeleton.feature_dim)  # before anything is written
 
-    encoder = build_text_encoder(
-        feat_cfg["text_encoder"], path=feat_cfg["text_encoder_path"], max_length=feat_cfg["max_text_tokens"]
-    )
     text = encode_captions(splits, encoder, feat_cfg["text_batch_size"])
 
     counts = {}
@@ -259,6 +260,11 @@ def run(params: dict[str, Any]) -> Path:
     filtered = [p for data in splits.values() for p in data.filtered]
     if filtered:
         print(filter_summary(filtered, skeleton.min_frames, data_cfg["feature_frames_below"]))
+    cut = [p for data in splits.values() for p in data.cut]
+    if cut:
+        names = [Path(p.path).name for p in cut]
+        print(f"extract_features: {len(cut)} caption span(s) run past their clip's end and were cut to it, as the "
+              f"reference loader cuts them (first: {', '.join(names[:3])})")
     print(f"extract_features: {sum(c['items'] for c in counts.values())} items, "
           f"{len(text)} distinct captions in {time.perf_counter() - start:.1f} s -> {out}")
     return out

@@ -193,6 +193,16 @@ def test_a_missing_dataset_folder_says_so_in_one_line(tmp_path, monkeypatch):
     assert sorted(p.name for p in tmp_path.iterdir()) == []
 
 
+def test_a_bad_text_encoder_path_stops_the_stage_before_any_motion_is_read(dataset, tmp_path, monkeypatch):
+    """The encoder is built first: on a real dataset reading the motions is the long part of the stage."""
+    params = _params(dataset, tmp_path / "features")
+    params["features"].update(text_encoder="clip", text_encoder_path=str(tmp_path / "no_clip"))
+    monkeypatch.setattr("stages.extract_features.read_dataset", lambda *a: pytest.fail("motions read first"))
+    with pytest.raises(FileNotFoundError, match="no_clip"):
+        run(params)
+    assert not (tmp_path / "features").exists()
+
+
 def test_many_problems_are_capped_with_a_count_per_kind():
     """A wrong skeleton fails every clip: the first problems, then how many of each kind (not 29k lines)."""
     problems = [Problem(f"new_joints/{k:06d}.npy", "wrong shape", "bad motion") for k in range(30)]

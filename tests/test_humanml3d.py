@@ -566,7 +566,10 @@ def test_span_items_and_filters(tmp_path: Path) -> None:
         ("c@60-100", 60, 100, "past the end"),
     ]
     assert all(len(i.captions) == 1 for i in data.items)  # no whole-clip item without a 0/0 caption
-    assert [p.reason.split(": ")[1] for p in data.filtered] == ["length 39 < min_frames 40", "length 0 < min_frames 40"]
+    assert [p.reason.split(": ")[1] for p in data.filtered] == ["length 39 < min_frames 40",
+                                                                "starts at or after the clip's end (100 frames)"]
+    assert [p.reason for p in data.cut] == ["span 3.0-10.0 s = frames [60, 200): cut to [60, 100) at the clip's end: "
+                                            "'past the end'"]
     # custom bounds
     data = read_split(root, "train", HUMANML3D, min_frames=39, max_frames=101)
     assert [i.item_id for i in data.items] == ["c@20-60", "c@20-59", "c@20-60~2", "c@60-100"]
@@ -595,7 +598,7 @@ def test_kit_skeleton(tmp_path: Path) -> None:
     data = read_split(root, "train", KIT)
     assert [(i.item_id, i.start, i.end) for i in data.items] == [("k1", 0, 24), ("k3", 0, 30)]
     assert [p.reason for p in data.filtered] == [
-        "span 2.0-4.0 s = frames [24, 24): length 0 < min_frames 24: 'then jumps'",
+        "span 2.0-4.0 s = frames [25, 50): starts at or after the clip's end (24 frames): 'then jumps'",
         "clip length 23 < min_frames 24 (feature frames)",
     ]
     assert data.clips["k3"].features.shape == (30, 251)

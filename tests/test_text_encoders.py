@@ -312,6 +312,11 @@ def test_build_errors(tmp_path: Path) -> None:
         build_text_encoder("clip", path=tmp_path)
     with pytest.raises(ValueError, match="needs path"):
         build_text_encoder("clip")
+    broken = tmp_path / "broken"
+    broken.mkdir()
+    (broken / "config.json").write_text('{"model_type": "clip",\n')
+    with pytest.raises(ValueError, match=r"broken/config.json: not valid JSON"):
+        build_text_encoder("clip", path=broken)
 
 
 def test_offline_env_respects_user_setting(monkeypatch: pytest.MonkeyPatch) -> None:
