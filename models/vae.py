@@ -64,7 +64,6 @@ from torch import Tensor, nn
 from torch.nn import functional as F
 
 from data.features import feature_groups, recover_from_ric, root_angle
-from models.diffusion import normal
 from models.transformer import Activation, PositionalEncoding, PositionalEncodingKind, SkipTransformer, lengths_to_mask
 
 DecoderArch = Literal["cross_attention", "self_attention"]
@@ -123,7 +122,8 @@ class LatentDistribution:
 
     def sample(self, generator: torch.Generator | None = None) -> Tensor:
         """Reparameterised sample ``z = mu + sigma * eps``, eps ~ N(0, I) (Kingma & Welling 2014, Eq. 10)."""
-        eps = normal(self.mu.shape, self.mu, generator)
+        device = generator.device if generator is not None else self.mu.device  # as models.diffusion.normal
+        eps = torch.randn(self.mu.shape, generator=generator, device=device, dtype=self.mu.dtype).to(self.mu.device)
         return self.mu + self.std * eps
 
     def kl(self) -> Tensor:
