@@ -62,10 +62,11 @@ def training_mask(lengths: torch.Tensor, num_frames: int, joints_num: int, joint
     """
     b = len(lengths)
     lengths = lengths.long().cpu()
-    joint = torch.as_tensor(joints)[torch.randint(len(joints), (b,), generator=generator)]
-    count = 1 + (torch.rand(b, generator=generator) * (lengths - 1).clamp(min=1)).long()
+    at = generator.device if generator is not None else torch.device("cpu")  # drawn there, used on the CPU
+    joint = torch.as_tensor(joints)[torch.randint(len(joints), (b,), generator=generator, device=at).cpu()]
+    count = 1 + (torch.rand(b, generator=generator, device=at).cpu() * (lengths - 1).clamp(min=1)).long()
     # n random valid frames: the n smallest of random keys, padded frames keyed past every valid one
-    keys = torch.rand(b, num_frames, generator=generator)
+    keys = torch.rand(b, num_frames, generator=generator, device=at).cpu()
     keys[torch.arange(num_frames)[None] >= lengths[:, None]] = 2.0
     rank = keys.argsort(1).argsort(1)
     frames = rank < count[:, None]

@@ -78,8 +78,10 @@ def check_plain(obj: Any, where: str = "payload") -> None:
     raise TypeError(f"{where}: {type(obj).__module__}.{type(obj).__qualname__} is not a tensor or plain type")
 
 
-def capture_rng() -> dict[str, Any]:
-    """Snapshot of the torch (CPU and CUDA), numpy and python global RNG states, in plain types."""
+def capture_rng(device: torch.device | None = None) -> dict[str, Any]:
+    """Snapshot of the torch CPU, numpy and python global RNG states, in plain types, and the CUDA RNG
+    state of ``device`` when it is a GPU (the run's own GPU only: a retried rank may be given another
+    index, or see fewer GPUs, than the one that wrote the snapshot)."""
     bit_generator, key, pos, has_gauss, cached_gaussian = np.random.get_state()  # noqa: NPY002
     version, internal, gauss_next = random.getstate()
     state: dict[str, Any] = {
@@ -88,13 +90,17 @@ def capture_rng() -> dict[str, Any]:
                   "pos": int(pos), "has_gauss": int(has_gauss), "cached_gaussian": float(cached_gaussian)},
         "python": {"version": int(version), "internal": list(internal), "gauss_next": gauss_next},
     }
-    if torch.cuda.is_available():
-        state["cuda"] = torch.cuda.get_rng_state_all()
+    if device is not None and device.type == "cuda":
+        state["cuda"] = torch.cuda.get_rng_state(device)
     return state
 
 
-def restore_rng(state: Mapping[str, Any]) -> None:
-    """Put back the RNG states that :func:`capture_rng` returned."""
+def restore_rng(state: Mapping[str, Any], device: torch.device | None = None) -> None:
+    """Put back the RNG states that :func:`capture_rng` returned (the CUDA one onto ``device``).
+
+    Raises:
+        KeyError: ``device`` is a GPU and the snapshot has no CUDA state (it was taken on the CPU).
+    """
     numpy_state, python_state = state["numpy"], state["python"]
     key = numpy_state["key"].numpy()
     if key.shape != (624,):  # MT19937's state; numpy reads a shorter key out of bounds
@@ -104,8 +110,8 @@ def restore_rng(state: Mapping[str, Any]) -> None:
         numpy_state["bit_generator"], key.astype(np.uint32), numpy_state["pos"], numpy_state["has_gauss"],
         numpy_state["cached_gaussian"]))
     random.setstate((python_state["version"], tuple(python_state["internal"]), python_state["gauss_next"]))
-    if "cuda" in state and torch.cuda.is_available():
-        torch.cuda.set_rng_state_all(state["cuda"])
+    if device is not None and device.type == "cuda":
+        torch.cuda.set_rng_state(state["cuda"], device)
 
 
 def seed_everything(seed: int) -> None:
@@ -189,13 +195,16 @@ def load_state(directory: Path) -> dict[str, Any]:
     return _safe_load(Path(directory) / STATE_FILE, FORMAT_VERSION, STATE_KEYS)
 
 
-def save_rng(directory: Path, rank: int) -> None:
-    """Write this process's RNG states as ``rng_rank<rank>.pt``."""
-    _atomic_save({"format": FORMAT_VERSION, **capture_rng()}, Path(directory) / rng_file(rank))
+def save_rng(directory: Path, rank: int, device: torch.device | None = None) -> None:
+    """Write this process's RNG states (with ``device``'s CUDA state) as ``rng_rank<rank>.pt``."""
+    _atomic_save({"format": FORMAT_VERSION, **capture_rng(device)}, Path(directory) / rng_file(rank))
 
 
-def load_rng(directory: Path, rank: int) -> bool:
-    """Restore this rank's RNG states from a checkpoint; False if the file is missing.
+def load_rng(directory: Path, rank: int, device: torch.device | None = None) -> bool:
+    """Restore this rank's RNG states from a checkpoint; False if the file is missing, or if ``device`` is a
+    GPU and the file has no CUDA state (a run started on the CPU and resumed on GPUs): the caller then
+    seeds every generator afresh, as for a missing file, rather than leave each rank's GPU generator at
+    the common initial seed.
 
     Raises:
         ValueError: the file is not one :func:`save_rng` wrote (see :func:`_safe_load`), or its
@@ -205,8 +214,10 @@ def load_rng(directory: Path, rank: int) -> bool:
     if not path.exists():
         return False
     state = _safe_load(path, FORMAT_VERSION, RNG_KEYS)
+    if device is not None and device.type == "cuda" and "cuda" not in state:
+        return False
     try:
-        restore_rng(state)
+        restore_rng(state, device)
     except (KeyError, TypeError, ValueError, AttributeError, IndexError, RuntimeError) as err:
         raise ValueError(f"{path}: RNG states do not fit ({type(err).__name__}: {err})") from err
     return True

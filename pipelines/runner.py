@@ -518,7 +518,7 @@ def _restore(run: _Run, session: Session, s: LoopSettings) -> None:
             ckpt.seed_everything(rank_seed(s.seed, session.rank))
             return
         run.load(ckpt.load_state(directory))  # rank 0's file; Ray merged all ranks' dirs
-        if not ckpt.load_rng(directory, session.rank):
+        if not ckpt.load_rng(directory, session.rank, session.device):
             ckpt.seed_everything(rank_seed(s.seed, session.rank) + run.pos.step)
 
 
@@ -616,7 +616,7 @@ def _checkpoint(run: _Run, session: Session, metrics: dict[str, Any]) -> None:
     """Write this rank's part of a checkpoint and report it (all ranks)."""
     with tempfile.TemporaryDirectory(prefix="motionforge-ckpt-") as tmp:
         directory = Path(tmp)
-        ckpt.save_rng(directory, session.rank)
+        ckpt.save_rng(directory, session.rank, session.device)
         if session.rank == 0:
             ckpt.save_state(directory, run.state())
         session.report(metrics, directory)
@@ -680,8 +680,22 @@ def _train_step(spec: TrainSpec, run: _Run, ctx: StepContext, batch: Any) -> dic
     return {k: v.detach() if isinstance(v, torch.Tensor) else float(v) for k, v in {**out, **ctx.extra_metrics}.items()}
 
 
+def deterministic_gpu(device: torch.device) -> None:
+    """On a GPU, the deterministic kernels the CPU path has: cuBLAS's fixed workspace (before its first call),
+    torch's deterministic algorithms (a warning where an op has none), cuDNN without autotuning and without
+    TF32. Nothing changes on the CPU."""
+    if device.type != "cuda":
+        return
+    os.environ.setdefault("CUBLAS_WORKSPACE_CONFIG", ":4096:8")
+    torch.use_deterministic_algorithms(True, warn_only=True)
+    torch.backends.cudnn.deterministic = True
+    torch.backends.cudnn.benchmark = False
+    torch.backends.cudnn.allow_tf32 = False
+
+
 def train_loop(session: Session, spec: TrainSpec, config: dict, info: RunInfo) -> None:
     """The per-worker loop (same code under Ray Train and in-process)."""
+    deterministic_gpu(session.device)
     s = LoopSettings.from_config(config)
     run = _build(spec, config, s, session)
     dataset = spec.dataset(config)  # before the RNG restore: any RNG it uses is used every attempt
@@ -977,6 +991,8 @@ def _fit_ray(stage: str, spec: TrainSpec, loop_config: Mapping[str, Any], opts: 
 def _fit_local(stage: str, spec: TrainSpec, loop_config: Mapping[str, Any], opts: RayOptions,
                storage: str, run_name: str | None) -> dict:
     """Run the same loop in this process (no Ray, no resume); returns the final state."""
+    if opts.use_gpu is True and not torch.cuda.is_available():
+        raise ValueError("ray.use_gpu=true but this machine has no CUDA GPU for the in-process run")
     use_gpu = opts.use_gpu in (True, "auto") and torch.cuda.is_available()
     name = run_name or make_run_name(stage, loop_config, 1)
     session = LocalSession(torch.device("cuda" if use_gpu else "cpu"))

@@ -241,6 +241,17 @@ def test_rng_round_trip_gives_the_same_draws(tmp_path: Path) -> None:
     assert ckpt.load_rng(tmp_path, 1) is False  # no file for rank 1
 
 
+def test_a_cpu_snapshot_resumed_on_a_gpu_asks_for_a_fresh_seed(tmp_path: Path) -> None:
+    """A CPU run's snapshot has no CUDA state; resumed on a GPU, load_rng says False (the runner then seeds
+    every generator from the rank and the step) instead of leaving every rank's GPU generator alike."""
+    ckpt.save_rng(tmp_path, 0, torch.device("cpu"))
+    assert "cuda" not in ckpt.capture_rng(torch.device("cpu"))
+    ckpt.seed_everything(3)
+    before = torch.get_rng_state()
+    assert ckpt.load_rng(tmp_path, 0, torch.device("cuda")) is False
+    assert torch.equal(torch.get_rng_state(), before)  # nothing half-restored
+
+
 # --------------------------------------------------------------------------- the command line
 
 

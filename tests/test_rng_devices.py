@@ -21,6 +21,7 @@ from test_motiondiffuse_model import _model as motiondiffuse_model
 from test_motiondiffuse_model import _text as motiondiffuse_text
 from test_motionlcm import teacher as mld_teacher
 
+from data.control import training_mask
 from models.controlnet import MotionControlNet, controlnet_loss
 from models.diffusion import NoiseSchedule, ddim_sample, ddpm_sample, lcm_training_timesteps, normal, uniform
 from models.emdm import EMDMSchedule, discriminator_step_losses, generator_step_losses
@@ -129,3 +130,9 @@ def test_samplers_draw_on_the_generators_device_and_give_its_numbers() -> None:
     motion = sample_motionlcm(student_from_teacher(teacher), vae, SCHEDULE, x["text_emb"], [8, 5], num_steps=2,
                               generator=elsewhere(3), **words)
     assert torch.isfinite(motion).all()
+
+
+def test_training_masks_draw_on_the_generators_device() -> None:
+    mask = training_mask(torch.tensor([12, 9]), 12, 22, [0, 10], generator=elsewhere(7))
+    again = training_mask(torch.tensor([12, 9]), 12, 22, [0, 10], generator=torch.Generator().manual_seed(7))
+    assert torch.equal(mask, again) and mask.device == torch.device("cpu")

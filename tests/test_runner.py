@@ -40,9 +40,11 @@ from pipelines.runner import (
     TrainingError,
     TrainSpec,
     _epoch_loader,
+    _fit_local,
     _Window,
     bucket_by_length,
     decide_use_gpu,
+    deterministic_gpu,
     fit_retrying,
     make_run_name,
     run_training,
@@ -327,6 +329,31 @@ def test_gpu_decision_never_hangs() -> None:
         decide_use_gpu(True, 2, {"GPU": 1})
     with pytest.raises(ValueError, match="unknown ray option"):
         RayOptions.from_dict({"num_worker": 1})
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="the machine has a GPU")
+def test_an_in_process_run_refuses_use_gpu_true_without_a_gpu(tmp_path: Path) -> None:
+    opts = RayOptions.from_dict({"num_workers": 0, "use_gpu": True})
+    with pytest.raises(ValueError, match="use_gpu=true but this machine has no CUDA GPU"):
+        _fit_local(STAGE, SPEC, BASE, opts, str(tmp_path), None)
+
+
+def test_gpu_runs_ask_for_deterministic_kernels(monkeypatch: pytest.MonkeyPatch) -> None:
+    """On a GPU the loop turns on what the CPU path has by default; on the CPU it changes nothing."""
+    cudnn = torch.backends.cudnn
+    saved = (torch.are_deterministic_algorithms_enabled(), torch.is_deterministic_algorithms_warn_only_enabled(),
+             cudnn.deterministic, cudnn.benchmark, cudnn.allow_tf32)
+    monkeypatch.delenv("CUBLAS_WORKSPACE_CONFIG", raising=False)
+    try:
+        deterministic_gpu(torch.device("cpu"))
+        assert "CUBLAS_WORKSPACE_CONFIG" not in os.environ and not torch.are_deterministic_algorithms_enabled()
+        deterministic_gpu(torch.device("cuda", 0))
+        assert os.environ["CUBLAS_WORKSPACE_CONFIG"] == ":4096:8"
+        assert torch.are_deterministic_algorithms_enabled() and torch.is_deterministic_algorithms_warn_only_enabled()
+        assert cudnn.deterministic and not cudnn.benchmark and not cudnn.allow_tf32
+    finally:
+        torch.use_deterministic_algorithms(saved[0], warn_only=saved[1])
+        cudnn.deterministic, cudnn.benchmark, cudnn.allow_tf32 = saved[2:]
 
 
 def test_wandb_runs_go_to_the_dvc_workspace(monkeypatch: pytest.MonkeyPatch) -> None:
