@@ -31,12 +31,11 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from data.control import CONTROL_JOINTS  # noqa: E402
 from data.physics import foot_skating_ratio  # noqa: E402
 from data.skeleton import get_skeleton  # noqa: E402
-from data.trajectories import make_trajectory  # noqa: E402
 from models.generator import ControlledGenerator  # noqa: E402
 from pipelines.cli import artifacts_dir, repo_path  # noqa: E402
 from pipelines.config import load_params  # noqa: E402
 from pipelines.registry import EvalContext, GenerateOptions, family  # noqa: E402
-from stages.generate import pelvis_hint  # noqa: E402
+from stages.generate import pelvis_hint, pelvis_path  # noqa: E402
 
 #: (caption, shape, size in metres): lines at four speeds, two zigzags, two circles, and a caption
 #: that does not say what the path does.
@@ -90,19 +89,20 @@ def main() -> None:
     lengths = np.full(args.samples, args.length)
     every: list[dict[str, float]] = []  # every case's samples
     for caption, shape, size in CASES:
-        path = make_trajectory(shape, args.length, size=size, height=float(ctx.store.mean[3]), fps=fps)
+        path = pelvis_path(shape, args.length, ctx.store, size)  # dataset units, ahead of the body (generate's)
         text = ctx.store.encode_prompts([caption] * args.samples)
         if controlled:
             motions = generator.sample(text, lengths, 0, hint=pelvis_hint(path, args.samples, ctx.store.joints_num))
         else:
             motions = generator.sample(text, lengths, 0)
         joints = ctx.store.to_joints(motions, lengths)
-        measures = [path_measures(j[:, pelvis], path, fps) for j in joints]
+        metres = path * skeleton.unit  # the measures are in metres (KIT-ML stores millimetres)
+        measures = [path_measures(j[:, pelvis] * skeleton.unit, metres, fps) for j in joints]
         mean = {key: float(np.mean([m[key] for m in measures])) for key in measures[0]}
         every += measures
         print(json.dumps({
             "caption": caption, "shape": shape, "size": size,
-            "path_speed": round(horizontal_speed(path, fps), 3),
+            "path_speed": round(horizontal_speed(metres, fps), 3),
             "error_m": round(mean["error"], 3), "error_sd": round(float(np.std([m["error"] for m in measures])), 3),
             "off_path_m": round(mean["off_path"], 3), "end_m": round(mean["end"], 3), "speed": round(mean["speed"], 3),
             "skating": round(float(np.mean([foot_skating_ratio(j, skeleton) for j in joints])), 3),

@@ -148,7 +148,9 @@ def _retarget(positions: np.ndarray, skeleton: Skeleton, target: np.ndarray) -> 
 
 
 def _face_z(positions: np.ndarray, skeleton: Skeleton) -> np.ndarray:
-    """Step 4: rotate all frames about y so that frame 0 faces +z (correct hip order)."""
+    """Step 4: rotate all frames about y so that frame 0's forward as the face joints name it turns onto +z
+    (correct hip order): the body faces +z, or -z where the face joints' sides are named the other way round
+    (``Skeleton.front``, KIT-ML)."""
     forward = normalize(facing_forward(positions[0], skeleton.face_joints, hip_quirk=False))
     q0 = qbetween(forward, Z_AXIS)
     return qrot(q0, positions)

@@ -34,7 +34,9 @@ from data.skeleton import HUMANML3D, Skeleton
 
 GRID_STEP = 0.5
 MAX_FLOOR = 15.0  # floor grid half-size cap (m): a wild generated motion must not draw thousands of lines
-_COLORS = ("#d62728", "#1f77b4", "#222222", "#ff7f0e", "#17becf")  # chains: right leg, left leg, spine, r/l arm
+#: bone colours by limb: legs red (right) and blue (left), arms orange (right) and cyan (left), the spine dark
+_COLORS = {("leg", "right"): "#d62728", ("leg", "left"): "#1f77b4", ("arm", "right"): "#ff7f0e",
+           ("arm", "left"): "#17becf", "spine": "#222222"}
 _FLOOR_COLOR = "#bbbbbb"
 _TRAJ_COLOR = "#2ca02c"
 TARGET_COLOR = "#e600e6"  # magenta: no bone, floor or trajectory colour mixes into it
@@ -122,13 +124,28 @@ def _draw_target(ax: Axes, camera: Camera, target: np.ndarray) -> None:
     ax.plot(xy[:, 0], xy[:, 1], color=TARGET_COLOR, lw=2.0, zorder=1)
 
 
+def chain_colors(skeleton: Skeleton) -> list[str]:
+    """One colour per kinematic chain, by the limb the rest pose makes it (not by its names or its place in the
+    list): a chain from the root ending off the midline is a leg, one from higher up an arm, and its side is
+    the side of the body (+x, left, in the rest pose) its end lies on; a chain ending on the midline is the spine."""
+    rest = skeleton.rest_directions()
+    colors = []
+    for chain in skeleton.kinematic_chain:
+        x = rest[chain[-1], 0] - rest[chain[0], 0]
+        if abs(x) < 1e-9:
+            colors.append(_COLORS["spine"])
+        else:
+            colors.append(_COLORS[("leg" if chain[0] == 0 else "arm", "left" if x > 0 else "right")])
+    return colors
+
+
 def _draw_pose(ax: Axes, camera: Camera, pose: np.ndarray, skeleton: Skeleton, alpha: float = 1.0,
                lw: float = 2.0) -> list:
-    """Draw one pose (J, 3); returns the line artists (one per kinematic chain)."""
+    """Draw one pose (J, 3); returns the line artists (one per kinematic chain, coloured by :func:`chain_colors`)."""
     artists = []
-    for k, chain in enumerate(skeleton.kinematic_chain):
+    for chain, color in zip(skeleton.kinematic_chain, chain_colors(skeleton), strict=True):
         xy = camera.project(pose[list(chain)])
-        (line,) = ax.plot(xy[:, 0], xy[:, 1], color=_COLORS[k % len(_COLORS)], lw=lw, alpha=alpha,
+        (line,) = ax.plot(xy[:, 0], xy[:, 1], color=color, lw=lw, alpha=alpha,
                           solid_capstyle="round", zorder=2)
         artists.append(line)
     return artists

@@ -83,14 +83,20 @@ class Skeleton:
         skeleton below), the named forward is the body's back, and canonical motions face -z. The
         presentation follows it: drawings look at the body's front, and ``generate``'s paths lead ahead.
         """
-        rest = np.zeros((self.joints_num, 3))
-        for chain in self.kinematic_chain:  # each chain starts at the root or on an earlier chain
-            for parent, joint in zip(chain[:-1], chain[1:], strict=True):
-                rest[joint] = rest[parent] + self.raw_offsets[joint]
+        rest = self.rest_directions()
         r_hip, l_hip, r_sho, l_sho = self.face_joints
         named_forward = np.cross([0.0, 1.0, 0.0], (rest[r_hip] - rest[l_hip]) + (rest[r_sho] - rest[l_sho]))
         toes = sum(rest[toe] - rest[ankle] for ankle, toe in (self.feet_left, self.feet_right))
         return 1.0 if float(named_forward @ toes) > 0 else -1.0
+
+    def rest_directions(self) -> np.ndarray:
+        """(J, 3) joint positions of the rest pose built from the unit ``raw_offsets`` (every bone 1 long): the
+        body faces +z (its toes), its left at +x. For sides and directions, not for sizes."""
+        rest = np.zeros((self.joints_num, 3))
+        for chain in self.kinematic_chain:  # each chain starts at the root or on an earlier chain
+            for parent, joint in zip(chain[:-1], chain[1:], strict=True):
+                rest[joint] = rest[parent] + self.raw_offsets[joint]
+        return rest
 
     def offsets(self, bone_lengths: np.ndarray | None = None) -> np.ndarray:
         """(J, 3) bone vectors ``raw_offsets * lengths``; default: the target skeleton."""

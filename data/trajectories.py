@@ -110,10 +110,11 @@ def make_trajectory(shape: str, frames: int, *, size: float | None = None, heigh
 
 
 def load_trajectory(path: str | Path, frames: int) -> np.ndarray:
-    """(frames, 3) float32 pelvis positions (metres, x left, y up, z forward) from a ``.npy`` file.
+    """(frames, 3) float32 pelvis positions (metres, y up) from a ``.npy`` file.
 
-    The file holds one (T, 3) array of real numbers with T == ``frames``; it is used as is (the
-    generated motion starts at the origin facing +z).
+    The file holds one (T, 3) array of real numbers with T == ``frames``, on the axes of the motions
+    ``stages.generate`` writes; it is used as is (a HumanML3D motion starts at the origin facing +z with
+    x to its left, a KIT-ML one facing -z: ``data.skeleton.Skeleton.front``).
 
     Raises:
         FileNotFoundError: there is no such file.

@@ -253,7 +253,8 @@ def contrastive_terms(
     if batch < 2:
         raise ValueError(f"contrastive_loss needs a batch of at least 2 for negatives, got {batch}")
     if shift is None:
-        shift = int(torch.randint(1, batch, (1,), generator=generator))
+        at = generator.device if generator is not None else torch.device("cpu")  # drawn on the generator's device
+        shift = int(torch.randint(1, batch, (1,), generator=generator, device=at))
     elif int(shift) != shift or not 1 <= shift <= batch - 1:
         raise ValueError(f"shift must be an integer in [1, {batch - 1}], got {shift!r}")
     shift = int(shift)

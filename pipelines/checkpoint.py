@@ -78,7 +78,7 @@ def check_plain(obj: Any, where: str = "payload") -> None:
     raise TypeError(f"{where}: {type(obj).__module__}.{type(obj).__qualname__} is not a tensor or plain type")
 
 
-def capture_rng(device: torch.device | None = None) -> dict[str, Any]:
+def capture_rng(device: torch.device) -> dict[str, Any]:
     """Snapshot of the torch CPU, numpy and python global RNG states, in plain types, and the CUDA RNG
     state of ``device`` when it is a GPU (the run's own GPU only: a retried rank may be given another
     index, or see fewer GPUs, than the one that wrote the snapshot)."""
@@ -90,12 +90,12 @@ def capture_rng(device: torch.device | None = None) -> dict[str, Any]:
                   "pos": int(pos), "has_gauss": int(has_gauss), "cached_gaussian": float(cached_gaussian)},
         "python": {"version": int(version), "internal": list(internal), "gauss_next": gauss_next},
     }
-    if device is not None and device.type == "cuda":
+    if device.type == "cuda":
         state["cuda"] = torch.cuda.get_rng_state(device)
     return state
 
 
-def restore_rng(state: Mapping[str, Any], device: torch.device | None = None) -> None:
+def restore_rng(state: Mapping[str, Any], device: torch.device) -> None:
     """Put back the RNG states that :func:`capture_rng` returned (the CUDA one onto ``device``).
 
     Raises:
@@ -110,7 +110,7 @@ def restore_rng(state: Mapping[str, Any], device: torch.device | None = None) ->
         numpy_state["bit_generator"], key.astype(np.uint32), numpy_state["pos"], numpy_state["has_gauss"],
         numpy_state["cached_gaussian"]))
     random.setstate((python_state["version"], tuple(python_state["internal"]), python_state["gauss_next"]))
-    if device is not None and device.type == "cuda":
+    if device.type == "cuda":
         torch.cuda.set_rng_state(state["cuda"], device)
 
 
@@ -195,12 +195,12 @@ def load_state(directory: Path) -> dict[str, Any]:
     return _safe_load(Path(directory) / STATE_FILE, FORMAT_VERSION, STATE_KEYS)
 
 
-def save_rng(directory: Path, rank: int, device: torch.device | None = None) -> None:
+def save_rng(directory: Path, rank: int, device: torch.device) -> None:
     """Write this process's RNG states (with ``device``'s CUDA state) as ``rng_rank<rank>.pt``."""
     _atomic_save({"format": FORMAT_VERSION, **capture_rng(device)}, Path(directory) / rng_file(rank))
 
 
-def load_rng(directory: Path, rank: int, device: torch.device | None = None) -> bool:
+def load_rng(directory: Path, rank: int, device: torch.device) -> bool:
     """Restore this rank's RNG states from a checkpoint; False if the file is missing, or if ``device`` is a
     GPU and the file has no CUDA state (a run started on the CPU and resumed on GPUs): the caller then
     seeds every generator afresh, as for a missing file, rather than leave each rank's GPU generator at
@@ -214,7 +214,7 @@ def load_rng(directory: Path, rank: int, device: torch.device | None = None) -> 
     if not path.exists():
         return False
     state = _safe_load(path, FORMAT_VERSION, RNG_KEYS)
-    if device is not None and device.type == "cuda" and "cuda" not in state:
+    if device.type == "cuda" and "cuda" not in state:
         return False
     try:
         restore_rng(state, device)

@@ -680,22 +680,32 @@ def _train_step(spec: TrainSpec, run: _Run, ctx: StepContext, batch: Any) -> dic
     return {k: v.detach() if isinstance(v, torch.Tensor) else float(v) for k, v in {**out, **ctx.extra_metrics}.items()}
 
 
-def deterministic_gpu(device: torch.device) -> None:
-    """On a GPU, the deterministic kernels the CPU path has: cuBLAS's fixed workspace (before its first call),
-    torch's deterministic algorithms (a warning where an op has none), cuDNN without autotuning and without
-    TF32. Nothing changes on the CPU."""
+@contextlib.contextmanager
+def deterministic_gpu(device: torch.device) -> Iterator[None]:
+    """On a GPU, the deterministic kernels the CPU path has, for the scope of a training loop: torch's
+    deterministic algorithms (a warning where an op has none), cuDNN without autotuning and without TF32,
+    and cuBLAS's fixed workspace (``CUBLAS_WORKSPACE_CONFIG``, which CUDA reads once per process, at the first
+    cuBLAS call: a Ray worker's loop makes that call; an in-process run after other GPU work keeps the
+    workspace it had). The previous settings come back afterwards. Nothing changes on the CPU."""
     if device.type != "cuda":
+        yield
         return
+    cudnn = torch.backends.cudnn
+    saved = (torch.are_deterministic_algorithms_enabled(), torch.is_deterministic_algorithms_warn_only_enabled(),
+             cudnn.deterministic, cudnn.benchmark, cudnn.allow_tf32)
     os.environ.setdefault("CUBLAS_WORKSPACE_CONFIG", ":4096:8")
     torch.use_deterministic_algorithms(True, warn_only=True)
-    torch.backends.cudnn.deterministic = True
-    torch.backends.cudnn.benchmark = False
-    torch.backends.cudnn.allow_tf32 = False
+    cudnn.deterministic, cudnn.benchmark, cudnn.allow_tf32 = True, False, False
+    try:
+        yield
+    finally:
+        torch.use_deterministic_algorithms(saved[0], warn_only=saved[1])
+        cudnn.deterministic, cudnn.benchmark, cudnn.allow_tf32 = saved[2:]
 
 
 def train_loop(session: Session, spec: TrainSpec, config: dict, info: RunInfo) -> None:
-    """The per-worker loop (same code under Ray Train and in-process)."""
-    deterministic_gpu(session.device)
+    """The per-worker loop (same code under Ray Train and in-process; its callers run it under
+    :func:`deterministic_gpu`)."""
     s = LoopSettings.from_config(config)
     run = _build(spec, config, s, session)
     dataset = spec.dataset(config)  # before the RNG restore: any RNG it uses is used every attempt
@@ -782,8 +792,9 @@ def _threads_scope(threads: int) -> contextlib.AbstractContextManager[None]:
 def ray_train_fn(loop_input: dict) -> None:
     """Ray Train entry point: ``{"spec", "config", "info"}`` -> :func:`train_loop`."""
     info: RunInfo = loop_input["info"]
-    with _threads_scope(info.torch_threads):
-        train_loop(RaySession(), loop_input["spec"], loop_input["config"], info)
+    session = RaySession()
+    with _threads_scope(info.torch_threads), deterministic_gpu(session.device):
+        train_loop(session, loop_input["spec"], loop_input["config"], info)
 
 
 # --------------------------------------------------------------------------- the driver
@@ -998,7 +1009,7 @@ def _fit_local(stage: str, spec: TrainSpec, loop_config: Mapping[str, Any], opts
     session = LocalSession(torch.device("cuda" if use_gpu else "cpu"))
     info = _run_info(stage, name, opts, storage, use_gpu)
     try:
-        with _threads_scope(info.torch_threads):
+        with _threads_scope(info.torch_threads), deterministic_gpu(session.device):
             train_loop(session, spec, dict(loop_config), info)
         assert session.latest is not None
         return ckpt.load_state(session.latest)

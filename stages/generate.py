@@ -340,7 +340,8 @@ def pelvis_path(trajectory: str, length: int, store: FeatureStore, size: float |
     """
     skeleton = get_skeleton(store.meta["skeleton"])
     if trajectory in SHAPES:
-        path = make_trajectory(trajectory, length, size=size, height=float(store.mean[3]) * skeleton.unit)
+        path = make_trajectory(trajectory, length, size=size, height=float(store.mean[3]) * skeleton.unit,
+                               fps=skeleton.fps)
         return path * np.array([skeleton.front, 1.0, skeleton.front], dtype=path.dtype) / skeleton.unit
     if trajectory.endswith(".npy"):
         if size is not None:

@@ -31,6 +31,7 @@ from pipelines import checkpoint as ckpt
 from pipelines.schedules import EMA, make_scheduler
 
 REPO = Path(__file__).resolve().parent.parent
+CPU = torch.device("cpu")
 REFUSED = "cannot load safely: it holds a pickled io.open, which safe loading refuses (tensors and plain types only)"
 
 
@@ -67,7 +68,7 @@ def planted_globals(path: Path) -> set[str]:
 
 
 def load_rng0(directory: Path) -> bool:
-    return ckpt.load_rng(directory, 0)
+    return ckpt.load_rng(directory, 0, CPU)
 
 
 # file name -> (the real loader of the directory, a payload of the right format for it)
@@ -149,7 +150,7 @@ def test_format_1_rng_file_names_the_refused_numpy_object(tmp_path: Path) -> Non
     torch.save({"torch": torch.get_rng_state(), "numpy": np.random.get_state(),  # noqa: NPY002
                 "python": random.getstate()}, path)
     with pytest.raises(ValueError, match=r"rng_rank0\.pt: cannot load safely: it holds a pickled numpy\."):
-        ckpt.load_rng(tmp_path, 0)
+        ckpt.load_rng(tmp_path, 0, CPU)
 
 
 def test_model_of_another_format_is_refused(tmp_path: Path) -> None:
@@ -161,13 +162,13 @@ def test_model_of_another_format_is_refused(tmp_path: Path) -> None:
 
 
 def test_rng_states_that_do_not_fit_are_a_clear_error(tmp_path: Path) -> None:
-    ckpt.save_rng(tmp_path, 0)
+    ckpt.save_rng(tmp_path, 0, CPU)
     path = tmp_path / ckpt.rng_file(0)
     state = torch.load(path, weights_only=True)
     state["numpy"]["key"] = state["numpy"]["key"][:10]
     torch.save(state, path)
     with pytest.raises(ValueError) as err:
-        ckpt.load_rng(tmp_path, 0)
+        ckpt.load_rng(tmp_path, 0, CPU)
     assert str(err.value) == f"{path}: RNG states do not fit (ValueError: numpy key of shape (10,), expected (624,))"
 
 
@@ -230,22 +231,37 @@ def test_rng_round_trip_gives_the_same_draws(tmp_path: Path) -> None:
     random.gauss(0, 1)  # leaves python's second Gaussian cached
     numpy_cached, python_cached = np.random.get_state()[3], random.getstate()[2]  # noqa: NPY002
     assert numpy_cached == 1 and python_cached is not None  # the caches are part of what must round-trip
-    ckpt.save_rng(tmp_path, 0)
+    ckpt.save_rng(tmp_path, 0, CPU)
     expected = draws()
     ckpt.seed_everything(8)
-    assert ckpt.load_rng(tmp_path, 0) is True
+    assert ckpt.load_rng(tmp_path, 0, CPU) is True
     got = draws()
     assert torch.equal(got[0], expected[0])
     np.testing.assert_array_equal(got[1], expected[1])
     assert got[2] == expected[2]
-    assert ckpt.load_rng(tmp_path, 1) is False  # no file for rank 1
+    assert ckpt.load_rng(tmp_path, 1, CPU) is False  # no file for rank 1
+
+
+def test_a_gpu_rank_saves_and_restores_its_own_devices_cuda_state(tmp_path: Path,
+                                                                  monkeypatch: pytest.MonkeyPatch) -> None:
+    """Only the rank's own GPU state is kept (not every visible GPU's by index), and it goes back to that GPU."""
+    gpu = torch.device("cuda", 1)
+    calls = []
+    monkeypatch.setattr(torch.cuda, "get_rng_state", lambda device: calls.append(("get", device)) or
+                        torch.arange(8, dtype=torch.uint8))
+    monkeypatch.setattr(torch.cuda, "set_rng_state",
+                        lambda state, device: calls.append(("set", device, state.tolist())))
+    ckpt.save_rng(tmp_path, 0, gpu)
+    assert ckpt.load_rng(tmp_path, 0, gpu) is True
+    assert calls == [("get", gpu), ("set", gpu, list(range(8)))]
+    assert ckpt.load_rng(tmp_path, 0, CPU) is True and len(calls) == 2  # a GPU snapshot resumed on the CPU
 
 
 def test_a_cpu_snapshot_resumed_on_a_gpu_asks_for_a_fresh_seed(tmp_path: Path) -> None:
     """A CPU run's snapshot has no CUDA state; resumed on a GPU, load_rng says False (the runner then seeds
     every generator from the rank and the step) instead of leaving every rank's GPU generator alike."""
-    ckpt.save_rng(tmp_path, 0, torch.device("cpu"))
-    assert "cuda" not in ckpt.capture_rng(torch.device("cpu"))
+    ckpt.save_rng(tmp_path, 0, CPU)
+    assert "cuda" not in ckpt.capture_rng(CPU)
     ckpt.seed_everything(3)
     before = torch.get_rng_state()
     assert ckpt.load_rng(tmp_path, 0, torch.device("cuda")) is False

@@ -16,6 +16,7 @@ from data.render import (
     Camera,
     _limits,
     _view,
+    chain_colors,
     contact_sheet,
     facing_azimuth,
     joints_of,
@@ -240,3 +241,19 @@ def test_the_camera_looks_at_the_front_of_every_skeletons_bodies():
             a = np.radians(facing_azimuth(joints, skeleton, offset=offset))
             toward = [np.sin(a), np.cos(a)]  # the camera's horizontal direction from the body (Camera)
             assert np.dot(toward, ahead) == pytest.approx(np.cos(np.radians(offset)), abs=1e-6), skeleton.name
+
+
+def test_limbs_are_coloured_by_the_side_the_rest_pose_puts_them_on():
+    """Left leg blue, right leg red, left arm cyan, right arm orange, judged from the rest pose, for KIT-ML's
+    MMM chain order (left leg first) as for HumanML3D's (right leg first)."""
+    legs_and_arms = {"left leg": "#1f77b4", "right leg": "#d62728", "left arm": "#17becf", "right arm": "#ff7f0e"}
+    by_joint = [(HUMANML3D, {"left_ankle": "left leg", "right_ankle": "right leg", "left_wrist": "left arm",
+                             "right_wrist": "right arm", "head": "spine"}),
+                (KIT, {"l_ankle": "left leg", "r_ankle": "right leg", "l_wrist": "left arm", "r_wrist": "right arm",
+                       "bun": "spine"})]
+    for skeleton, limbs in by_joint:
+        colors = chain_colors(skeleton)
+        for joint, limb in limbs.items():
+            j = skeleton.joint_names.index(joint)
+            [k] = [k for k, chain in enumerate(skeleton.kinematic_chain) if j in chain[1:]]
+            assert colors[k] == legs_and_arms.get(limb, "#222222"), (skeleton.name, joint)

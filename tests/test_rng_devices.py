@@ -14,6 +14,7 @@ from collections.abc import Callable
 
 import pytest
 import torch
+import torch.utils._pytree as pytree
 from test_controlnet import D, control_config, randomise, student, tiny_vae
 from test_controlnet import batch as control_batch
 from test_emdm_model import _nets as emdm_nets
@@ -25,6 +26,7 @@ from data.control import training_mask
 from models.controlnet import MotionControlNet, controlnet_loss
 from models.diffusion import NoiseSchedule, ddim_sample, ddpm_sample, lcm_training_timesteps, normal, uniform
 from models.emdm import EMDMSchedule, discriminator_step_losses, generator_step_losses
+from models.evaluator import contrastive_loss
 from models.mld import mld_loss, sample_mld
 from models.motiondiffuse import training_loss
 from models.motionlcm import lcm_distillation_loss, sample_motionlcm, student_from_teacher
@@ -48,13 +50,32 @@ def elsewhere(seed: int) -> torch.Generator:
     return Elsewhere().manual_seed(seed)
 
 
+class OnGeneratorDevice(torch.Tensor):
+    """A draw still on the generator's device: used alone or with scalars it works, mixed with the tensors'
+    (any plain tensor of one or more dimensions) it raises, as a CUDA tensor mixed with CPU ones does;
+    ``.to`` / ``.cpu`` bring it over."""
+
+    @classmethod
+    def __torch_function__(cls, func, types, args=(), kwargs=None):
+        kwargs = kwargs or {}
+        with torch._C.DisableTorchFunctionSubclass():
+            if getattr(func, "__name__", "") in ("to", "cpu"):
+                return func(*args, **kwargs).as_subclass(torch.Tensor)
+            leaves, _ = pytree.tree_flatten((args, kwargs))
+            if any(type(x) is torch.Tensor and x.dim() > 0 for x in leaves):
+                raise RuntimeError(f"{getattr(func, '__name__', func)}: a draw on the generator's device met "
+                                   "a tensor on another device")
+            out = func(*args, **kwargs)
+        return pytree.tree_map(lambda x: x.as_subclass(cls) if type(x) is torch.Tensor else x, out)
+
+
 def cuda_rule(draw: Callable) -> Callable:
     def checked(*args, generator: torch.Generator | None = None, device=None, **kwargs):
-        if isinstance(generator, Elsewhere):
-            if torch.device(device or "cpu") != OTHER:
-                raise RuntimeError(f"a generator on {OTHER} asked for a tensor on {device or 'cpu'}")
-            device = "cpu"
-        return draw(*args, generator=generator, device=device, **kwargs)
+        if not isinstance(generator, Elsewhere):
+            return draw(*args, generator=generator, device=device, **kwargs)
+        if torch.device(device or "cpu") != OTHER:
+            raise RuntimeError(f"a generator on {OTHER} asked for a tensor on {device or 'cpu'}")
+        return draw(*args, generator=generator, device="cpu", **kwargs).as_subclass(OnGeneratorDevice)
     return checked
 
 
@@ -64,9 +85,14 @@ def strict_draws(monkeypatch: pytest.MonkeyPatch) -> None:
         monkeypatch.setattr(torch, name, cuda_rule(getattr(torch, name)))
 
 
-def test_the_rule_refuses_a_draw_on_another_device_than_the_generators() -> None:
+def test_the_rule_refuses_a_draw_on_another_device_than_the_generators_and_a_draw_left_there() -> None:
     with pytest.raises(RuntimeError, match="asked for a tensor on cpu"):
         torch.randn(3, generator=elsewhere(0))
+    draw = torch.randn(3, generator=elsewhere(0), device=OTHER)
+    assert torch.isfinite(draw * 2.0 + 1.0).all()  # alone and with scalars: fine
+    with pytest.raises(RuntimeError, match="met a tensor on another device"):
+        draw + torch.ones(3)
+    assert type(draw.to("cpu") + torch.ones(3)) is torch.Tensor  # moved: fine
 
 
 def test_draws_are_the_generators_numbers_on_the_tensors_device() -> None:
@@ -136,3 +162,9 @@ def test_training_masks_draw_on_the_generators_device() -> None:
     mask = training_mask(torch.tensor([12, 9]), 12, 22, [0, 10], generator=elsewhere(7))
     again = training_mask(torch.tensor([12, 9]), 12, 22, [0, 10], generator=torch.Generator().manual_seed(7))
     assert torch.equal(mask, again) and mask.device == torch.device("cpu")
+
+
+def test_the_evaluators_negative_shift_draws_on_the_generators_device() -> None:
+    text, motion = torch.randn(4, 3), torch.randn(4, 3)
+    assert torch.equal(contrastive_loss(text, motion, generator=elsewhere(8)),
+                       contrastive_loss(text, motion, generator=torch.Generator().manual_seed(8)))
