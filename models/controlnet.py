@@ -48,9 +48,10 @@ import torch
 from torch import Tensor, nn
 
 from data.features import recover_from_ric
-from models.diffusion import NoiseSchedule, lcm_consistency_fn, lcm_training_timesteps, normal, uniform
+from models.diffusion import NoiseSchedule, lcm_consistency_fn, lcm_training_timesteps
 from models.mld import MLDDenoiser
 from models.motionlcm import guidance_embedding
+from models.rng import normal, rng_device, uniform
 from models.transformer import SkipTransformer, lengths_to_mask, sinusoidal_positions
 from models.vae import MotionVAE
 
@@ -189,7 +190,7 @@ def training_timesteps(timesteps: Sequence[int], batch: int, num_train_steps: in
     choices = torch.as_tensor(list(timesteps), dtype=torch.long)
     if choices.numel() == 0 or choices.min() < 0 or choices.max() >= num_train_steps:
         raise ValueError(f"timesteps: expected a non-empty list in [0, {num_train_steps}), got {list(timesteps)}")
-    device = generator.device if generator is not None else torch.device("cpu")
+    device = rng_device(generator, "cpu")
     return choices.to(device)[torch.randint(0, len(choices), (batch,), generator=generator, device=device)]
 
 

@@ -31,6 +31,8 @@ from typing import Any, Literal, NamedTuple
 import torch
 from torch import Tensor
 
+from models.rng import normal, rng_device
+
 PredictionType = Literal["epsilon", "sample", "v_prediction"]
 TimestepSpacing = Literal["leading", "trailing", "linspace"]
 LCMTimestepRule = Literal["strided", "linspace"]
@@ -370,27 +372,6 @@ class StepOutput(NamedTuple):
 def _device(generator: torch.Generator | None, device: torch.device | str | None) -> torch.device:
     """Where a draw's result goes: ``device``, else the generator's device, else the CPU."""
     return torch.device(device) if device is not None else rng_device(generator, "cpu")
-
-
-def rng_device(generator: torch.Generator | None, fallback: torch.device | str) -> torch.device:
-    """Where a random draw happens: on ``generator``'s device, else (torch's global RNG) on ``fallback``.
-
-    Every draw of the models' losses and samplers goes through here and is then moved to the tensors'
-    device, so a seeded CPU generator gives the same numbers whether the networks run on the CPU or a GPU
-    (a CUDA tensor cannot be drawn from a CPU generator at all).
-    """
-    return generator.device if generator is not None else torch.device(fallback)
-
-
-def normal(shape: Sequence[int], like: Tensor, generator: torch.Generator | None) -> Tensor:
-    """N(0, I) of ``shape`` drawn on :func:`rng_device`, returned on ``like``'s device and dtype."""
-    dev = rng_device(generator, like.device)
-    return torch.randn(tuple(shape), generator=generator, device=dev, dtype=like.dtype).to(like.device)
-
-
-def uniform(shape: Sequence[int], like: Tensor, generator: torch.Generator | None) -> Tensor:
-    """U[0, 1) of ``shape`` drawn on :func:`rng_device`, returned on ``like``'s device (float32)."""
-    return torch.rand(tuple(shape), generator=generator, device=rng_device(generator, like.device)).to(like.device)
 
 
 def _initial_noise(

@@ -137,8 +137,9 @@ from torch.nn.attention import SDPBackend, sdpa_kernel
 
 from data.features import feature_groups, recover_from_ric
 from data.skeleton import SKELETONS
-from models.diffusion import cfg_combine, condition_dropout, normal, sample_timesteps
+from models.diffusion import cfg_combine, condition_dropout, sample_timesteps
 from models.patches import from_output_patches, output_width, to_patches
+from models.rng import normal
 from models.transformer import PositionalEncoding, TransformerLayer, eval_mode, lengths_to_mask, timestep_embedding
 
 Condition = Literal["text", "action"]

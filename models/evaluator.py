@@ -38,6 +38,7 @@ from torch import nn
 from torch.nn.utils.rnn import pack_padded_sequence
 
 from data.vocab import NUM_POS
+from models.rng import rng_device
 
 #: Feature dims at the end of every frame that the movement encoder never sees (foot contacts).
 CONTACT_DIMS = 4
@@ -253,8 +254,7 @@ def contrastive_terms(
     if batch < 2:
         raise ValueError(f"contrastive_loss needs a batch of at least 2 for negatives, got {batch}")
     if shift is None:
-        at = generator.device if generator is not None else torch.device("cpu")  # drawn on the generator's device
-        shift = int(torch.randint(1, batch, (1,), generator=generator, device=at))
+        shift = int(torch.randint(1, batch, (1,), generator=generator, device=rng_device(generator, "cpu")))
     elif int(shift) != shift or not 1 <= shift <= batch - 1:
         raise ValueError(f"shift must be an integer in [1, {batch - 1}], got {shift!r}")
     shift = int(shift)

@@ -66,10 +66,9 @@ from models.diffusion import (
     classifier_free_guidance,
     condition_dropout,
     ddim_sample,
-    normal,
-    rng_device,
     sample_timesteps,
 )
+from models.rng import normal, rng_device
 from models.transformer import (
     Activation,
     PositionalEncoding,

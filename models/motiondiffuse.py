@@ -158,12 +158,11 @@ from models.diffusion import (
     ddim_sample,
     ddpm_sample,
     linear_betas,
-    normal,
-    rng_device,
     sample_timesteps,
     wiener_taps,
 )
 from models.patches import from_output_patches, output_width, to_patches
+from models.rng import normal, rng_device
 from models.transformer import TransformerLayer, eval_mode, lengths_to_mask, timestep_embedding
 
 AttentionKind = Literal["linear", "softmax"]

@@ -43,10 +43,9 @@ from models.diffusion import (
     lcm_consistency_fn,
     lcm_multistep_sample,
     lcm_training_timesteps,
-    normal,
-    uniform,
 )
 from models.mld import MLDDenoiser
+from models.rng import normal, uniform
 from models.transformer import eval_mode, timestep_embedding
 from models.vae import MotionVAE
 

@@ -64,6 +64,7 @@ from torch import Tensor, nn
 from torch.nn import functional as F
 
 from data.features import feature_groups, recover_from_ric, root_angle
+from models.rng import normal
 from models.transformer import Activation, PositionalEncoding, PositionalEncodingKind, SkipTransformer, lengths_to_mask
 
 DecoderArch = Literal["cross_attention", "self_attention"]
@@ -122,8 +123,7 @@ class LatentDistribution:
 
     def sample(self, generator: torch.Generator | None = None) -> Tensor:
         """Reparameterised sample ``z = mu + sigma * eps``, eps ~ N(0, I) (Kingma & Welling 2014, Eq. 10)."""
-        device = generator.device if generator is not None else self.mu.device  # as models.diffusion.normal
-        eps = torch.randn(self.mu.shape, generator=generator, device=device, dtype=self.mu.dtype).to(self.mu.device)
+        eps = normal(self.mu.shape, self.mu, generator)
         return self.mu + self.std * eps
 
     def kl(self) -> Tensor:

@@ -1,5 +1,5 @@
 """Seeded generators and the networks' device: every random draw of a loss or sampler happens on the
-generator's device and is then moved to the tensors' device (``models.diffusion.rng_device``).
+generator's device and is then moved to the tensors' device (``models.rng``).
 
 CUDA refuses to draw a CUDA tensor from a CPU generator, and a CPU generator is what the evaluation seeds
 (the same numbers on any machine). No GPU is needed to hold the code to that rule: a generator here
@@ -24,12 +24,13 @@ from test_motionlcm import teacher as mld_teacher
 
 from data.control import training_mask
 from models.controlnet import MotionControlNet, controlnet_loss
-from models.diffusion import NoiseSchedule, ddim_sample, ddpm_sample, lcm_training_timesteps, normal, uniform
+from models.diffusion import NoiseSchedule, ddim_sample, ddpm_sample, lcm_training_timesteps
 from models.emdm import EMDMSchedule, discriminator_step_losses, generator_step_losses
 from models.evaluator import contrastive_loss
 from models.mld import mld_loss, sample_mld
 from models.motiondiffuse import training_loss
 from models.motionlcm import lcm_distillation_loss, sample_motionlcm, student_from_teacher
+from models.rng import normal, uniform
 from models.vae import LatentDistribution
 
 pytestmark = pytest.mark.usefixtures("one_thread")
