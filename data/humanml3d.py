@@ -43,7 +43,7 @@ from __future__ import annotations
 import math
 import re
 from collections.abc import Iterable, Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -208,12 +208,14 @@ class Problem:
     """A defect in the input: ``path`` is the file at fault (``file:line`` for a line).
 
     ``kind`` is a short category (one of :data:`PROBLEM_KINDS` for the reader's problems), under
-    which skip mode summarises what it dropped; it is not part of equality.
+    which skip mode summarises what it dropped; ``clip_id`` names the clip the problem drops (None
+    for a problem of no one clip, such as a bad split-file line). Neither is part of equality.
     """
 
     path: str
     reason: str
     kind: str = field(default="bad input", compare=False)
+    clip_id: str | None = field(default=None, compare=False)
 
     def __str__(self) -> str:
         return f"{self.path}: {self.reason}"
@@ -719,11 +721,11 @@ def read_split(
     data = SplitData(split=split)
     for clip_id in ids:
         if exclude and clip_id in exclude:
-            problems.append(exclude[clip_id])
+            problems.append(replace(exclude[clip_id], clip_id=clip_id))
             continue
         loaded, captions, clip_problems = _load_clip(root, clip_id, skeleton, source)
         if clip_problems:
-            problems += clip_problems
+            problems += [replace(problem, clip_id=clip_id) for problem in clip_problems]
             continue
         assert loaded is not None
         _add_clip(data, root, clip_id, loaded, captions, actions.get(clip_id), bounds, skeleton.fps)
@@ -820,6 +822,6 @@ def _empty_split_problem(root: Path, data: SplitData) -> Problem:
     if not data.skipped and not data.filtered:
         reason = f"split {data.split!r} is empty: the file lists no clip id"
     else:
-        reason = (f"split {data.split!r} has no item left: {len(data.skipped)} problem(s) skipped, "
+        reason = (f"split {data.split!r} has no item left: {len(data.skipped)} problem(s) with its clips, "
                   f"{len(data.filtered)} clip(s) or span(s) filtered by length")
     return Problem(str(root / f"{data.split}.txt"), reason, EMPTY_SPLIT)

@@ -11,10 +11,12 @@ embeddings of every caption; then writes atomically to ``features.out``::
     skipped.json                               only with data.on_error=skip: what and why
 
 With ``data.on_error=fail`` (default) any bad input makes the stage list every problem and exit
-non-zero, writing nothing. Bad input includes the dataset as a whole: a clip id in two splits, an
-empty split (:func:`data.humanml3d.read_splits`), and statistics that cannot normalise (a zero
-std). With ``data.on_error=skip`` the bad clips are left out, listed in ``skipped.json`` and
-summarised on the console, one line per kind of problem.
+non-zero, writing nothing: the problems of reading the files and the clips whose features cannot
+be computed, in one run (the motions that read are put through feature extraction before the
+stage fails). Bad input includes the dataset as a whole: a clip id in two splits, an empty split
+(:func:`data.humanml3d.read_splits`), and statistics that cannot normalise (a zero std). With
+``data.on_error=skip`` the bad clips are left out, listed in ``skipped.json`` (each problem with
+its split and clip id) and summarised on the console, one line per kind of problem.
 """
 
 from __future__ import annotations
@@ -27,7 +29,6 @@ import time
 from collections import defaultdict
 from collections.abc import Sequence
 from concurrent.futures import ProcessPoolExecutor
-from dataclasses import asdict
 from multiprocessing import get_context
 from pathlib import Path
 from typing import Any
@@ -51,8 +52,11 @@ PARAMS = ("data", "features")
 
 
 def read_dataset(root: Path, skeleton: Skeleton, data_cfg: dict[str, Any]) -> dict[str, SplitData]:
-    """Read every split, checked as a set (:func:`read_splits`); in ``fail`` mode one error lists all problems."""
-    return read_splits(root, skeleton, SPLITS, source=data_cfg["source"], on_error=data_cfg["on_error"],
+    """Read every split, checked as a set (:func:`read_splits`), always in skip mode: the bad clips'
+    problems are in each split's ``skipped``, and :func:`run` raises them in fail mode together with
+    the feature extraction's, so one run lists them all. Dataset-level problems (a missing split
+    file, an empty split) raise here in both modes."""
+    return read_splits(root, skeleton, SPLITS, source=data_cfg["source"], on_error="skip",
                        max_frames=data_cfg["feature_frames_below"])
 
 
@@ -89,9 +93,9 @@ def compute_clip_features(
 
 
 def clip_features(
-    splits: dict[str, SplitData], root: Path, skeleton: Skeleton, workers: int, on_error: str
+    splits: dict[str, SplitData], root: Path, skeleton: Skeleton, workers: int
 ) -> tuple[dict[str, np.ndarray], list[Problem]]:
-    """Features of every clip of every split; failures become Problems naming the clip's file."""
+    """Features of every clip of every split; failures become Problems naming the clip's file and id."""
     feats, jobs = {}, []
     for data in splits.values():
         for clip_id, clip in data.clips.items():
@@ -105,9 +109,7 @@ def clip_features(
             feats[clip_id] = features
         else:
             problems.append(Problem(str(root / "new_joints" / f"{clip_id}.npy"), f"feature extraction failed: {error}",
-                                    "feature extraction failed"))
-    if problems and on_error == "fail":
-        raise DatasetError(problems)
+                                    "feature extraction failed", clip_id))
     return feats, problems
 
 
@@ -150,8 +152,11 @@ def config_hash(params: dict[str, Any]) -> str:
     return hashlib.sha256(json.dumps(relevant, sort_keys=True).encode()).hexdigest()[:16]
 
 
-def _problem_dicts(problems: Sequence[Problem]) -> list[dict[str, str]]:
-    return [asdict(p) for p in problems]
+def _problem_dicts(problems: Sequence[tuple[str, Problem]]) -> list[dict[str, str | None]]:
+    """``skipped.json``'s entries: each problem's split, clip id (None for a bad split-file line), file,
+    kind and reason."""
+    return [{"split": split, "clip_id": p.clip_id, "path": p.path, "kind": p.kind, "reason": p.reason}
+            for split, p in problems]
 
 
 def files_by_kind(problems: Sequence[Problem]) -> dict[str, list[str]]:
@@ -209,7 +214,12 @@ def run(params: dict[str, Any]) -> Path:
         feat_cfg["text_encoder"], path=feat_cfg["text_encoder_path"], max_length=feat_cfg["max_text_tokens"]
     )
     splits = read_dataset(root, skeleton, data_cfg)
-    feats, failed = clip_features(splits, root, skeleton, feat_cfg["workers"], data_cfg["on_error"])
+    feats, failed = clip_features(splits, root, skeleton, feat_cfg["workers"])
+    split_of = {clip_id: split for split, data in splits.items() for clip_id in data.clips}
+    skipped = [(split, p) for split, data in splits.items() for p in data.skipped]
+    skipped += [(split_of[p.clip_id], p) for p in failed]
+    if skipped and data_cfg["on_error"] == "fail":
+        raise DatasetError([p for _, p in skipped], f"splits {list(SPLITS)} of {root}")
     train_clips = {item.clip_id for item in splits["train"].items if item.clip_id in feats}
     if not train_clips:
         raise DatasetError([Problem(str(root / "train.txt"), "no usable training motion")])
@@ -229,11 +239,10 @@ def run(params: dict[str, Any]) -> Path:
                 "captions": sum(len(r.captions) for r in rows),
                 "frames": int(sum(r.length for r in rows)),
                 "filtered": len(data.filtered),
-                "skipped": len(data.skipped) + sum(Path(p.path).stem in data.clips for p in failed),  # problems
+                "skipped": sum(s == split for s, _ in skipped),  # problems
             }
         np.save(tmp / "mean.npy", mean.astype(np.float32))
         np.save(tmp / "std.npy", std.astype(np.float32))
-        skipped = [p for data in splits.values() for p in data.skipped] + failed
         if data_cfg["on_error"] == "skip":
             (tmp / "skipped.json").write_text(json.dumps(_problem_dicts(skipped), indent=1))
         meta = {
@@ -251,7 +260,7 @@ def run(params: dict[str, Any]) -> Path:
         }
         (tmp / "meta.json").write_text(json.dumps(meta, indent=2))
     if skipped:
-        sys.stderr.write(skip_summary(skipped, out / "skipped.json") + "\n")
+        sys.stderr.write(skip_summary([p for _, p in skipped], out / "skipped.json") + "\n")
     untagged = sorted({item.clip_id for data in splits.values() for item in data.items
                        for caption in item.captions if not caption.tokens})
     if untagged:  # allowed (the text encoders read the text), but the evaluator reads the tokens

@@ -127,12 +127,41 @@ def test_bad_input_fails_naming_the_file_and_writes_nothing(dataset, tmp_path, m
     assert [p.name for p in tmp_path.iterdir()] == ["corrupt"]  # no temp directory left behind
 
 
+def _degenerate_copy(dataset: Path, tmp_path: Path) -> Path:
+    """A copy whose test clip 0007 reads but cannot be turned into features (frame 0 collapsed to a point)."""
+    root = tmp_path / "copy"
+    shutil.copytree(dataset, root)
+    joints = np.load(root / "new_joints" / "0007.npy")
+    joints[0] = joints[0, :1]
+    np.save(root / "new_joints" / "0007.npy", joints)
+    return root
+
+
+def test_fail_mode_lists_reading_and_extraction_problems_in_one_run(dataset, tmp_path, monkeypatch):
+    """A truncated file (found reading) and a degenerate pose (found computing features) in one error."""
+    root = _degenerate_copy(dataset, tmp_path)
+    bad = root / "new_joints" / "0002.npy"
+    bad.write_bytes(bad.read_bytes()[:200])
+    params = _params(root, tmp_path / "features")
+    monkeypatch.setattr("pipelines.cli.load_params", lambda argv: params)
+    with pytest.raises(SystemExit) as exc:
+        main([])
+    lines = str(exc.value).splitlines()
+    assert lines[:2] == ["extract_features: bad input, nothing written.",
+                         f"2 problem(s) in splits ['train', 'val', 'test'] of {root}:"]
+    assert lines[2].startswith(f"  - {root}/new_joints/0002.npy: unreadable or corrupt .npy")
+    assert lines[3].startswith(f"  - {root}/new_joints/0007.npy: feature extraction failed: ")
+    assert len(lines) == 4
+    assert not (tmp_path / "features").exists()
+
+
 @pytest.mark.slow  # a whole extract_features stage run
 def test_skip_mode_reports_what_it_skipped(dataset, tmp_path):
     root = _corrupt_copy(dataset, tmp_path)
     out = run(_params(root, tmp_path / "features", on_error="skip"))
     skipped = json.loads((out / "skipped.json").read_text())
     assert len(skipped) == 1 and skipped[0]["path"].endswith("0002.npy")
+    assert (skipped[0]["split"], skipped[0]["clip_id"], skipped[0]["kind"]) == ("train", "0002", "unreadable file")
     assert {i.clip_id for i in read_split(out / "train.parquet")} == {"0000", "0001", "0003", "0004", "0005"}
     meta = json.loads((out / "meta.json").read_text())
     assert meta["skipped"] == 1 and meta["counts"]["train"]["skipped"] == 1
@@ -142,14 +171,11 @@ def test_skip_mode_reports_what_it_skipped(dataset, tmp_path):
 def test_a_clip_that_fails_extraction_counts_in_its_split(dataset, tmp_path):
     """Skip mode: a clip that reads but cannot be turned into features (frame 0 collapsed to a point) is a
     problem of its own split in meta.json, not only of the total."""
-    root = tmp_path / "copy"
-    shutil.copytree(dataset, root)
-    joints = np.load(root / "new_joints" / "0007.npy")
-    joints[0] = joints[0, :1]
-    np.save(root / "new_joints" / "0007.npy", joints)
+    root = _degenerate_copy(dataset, tmp_path)
     out = run(_params(root, tmp_path / "features", on_error="skip"))
     meta = json.loads((out / "meta.json").read_text())
-    assert [json.loads((out / "skipped.json").read_text())[0]["kind"]] == ["feature extraction failed"]
+    [entry] = json.loads((out / "skipped.json").read_text())
+    assert (entry["kind"], entry["split"], entry["clip_id"]) == ("feature extraction failed", "test", "0007")
     assert (meta["skipped"], meta["counts"]["test"]["skipped"], meta["counts"]["train"]["skipped"]) == (1, 1, 0)
     assert {i.clip_id for i in read_split(out / "test.parquet")} == {"0008"}
 
@@ -166,8 +192,9 @@ def test_skip_mode_summarises_on_the_console(dataset, tmp_path, capsys):
                                        "  id in several splits: 2 (test.txt:3, test.txt:4)"]
     assert {i.clip_id for i in read_split(out / "test.parquet")} == {"0007", "0008"}
     skipped = json.loads((out / "skipped.json").read_text())
-    assert [(p["kind"], Path(p["path"]).name) for p in skipped] == [
-        ("unreadable file", "0002.npy"), ("id in several splits", "test.txt:3"), ("id in several splits", "test.txt:4")]
+    assert [(p["kind"], Path(p["path"]).name, p["split"], p["clip_id"]) for p in skipped] == [
+        ("unreadable file", "0002.npy", "train", "0002"), ("id in several splits", "test.txt:3", "test", "0001"),
+        ("id in several splits", "test.txt:4", "test", "0003")]
 
 
 def test_empty_split_fails_in_one_line(dataset, tmp_path, monkeypatch):
@@ -337,7 +364,8 @@ def test_extract_features_command_refuses_an_id_in_two_splits(dataset, tmp_path)
     before = _previous_output(out, "extract_features")
     proc = _stage("stages.extract_features", "dataset=synthetic", f"data.root={root}", f"features.out={out}")
     assert proc.returncode == 1, proc.stderr
-    assert proc.stderr.splitlines() == [
-        f"extract_features: bad input, nothing written: {root}/test.txt:3: clip id '0001' is also in "
-        f"{root}/train.txt:2: a clip in two splits leaks between them"]
+    *progress, last = proc.stderr.splitlines()  # the clips that read went through feature extraction first
+    assert last == (f"extract_features: bad input, nothing written: {root}/test.txt:3: clip id '0001' is also in "
+                    f"{root}/train.txt:2: a clip in two splits leaks between them")
+    assert all(line.startswith("features:") for line in progress if line)
     assert _tree(out) == before

@@ -654,7 +654,7 @@ def test_split_emptied_by_skipping_fails_with_what_emptied_it(dataset: Path) -> 
     err = pytest.raises(DatasetError, read_splits, dataset, HUMANML3D, on_error="skip").value
     assert [(p.kind, p.path) for p in err.problems] == [
         (UNREADABLE, f"{dataset}/new_joints/000004.npy"), (EMPTY_SPLIT, f"{dataset}/val.txt")]
-    assert err.problems[1].reason == "split 'val' has no item left: 1 problem(s) skipped, 0 clip(s) or " \
+    assert err.problems[1].reason == "split 'val' has no item left: 1 problem(s) with its clips, 0 clip(s) or " \
                                      "span(s) filtered by length"
 
 
