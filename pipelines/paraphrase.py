@@ -1,10 +1,9 @@
 """The held-out paraphrase protocol and the action-accuracy check (issue 18; :class:`pipelines.evaluation.Semantics`).
 
 A dataset may hold a second caption set for its test motions, ``paraphrases/<clip id>.txt`` beside
-``texts/``, in the same format: whole-clip captions (``0.0#0.0``) for the whole-clip item and span
-captions for the span items (matched by their frames, as ``texts/`` spans are). The embedded dataset
-writes it with a grammar whose vocabulary the training captions never use (:mod:`data.paraphrase_text`);
-users of a real dataset may write their own. Every test item must have at least one paraphrase.
+``texts/``, in the same format (:mod:`data.paraphrase_set` reads it). The embedded dataset writes it
+with a grammar whose vocabulary the training captions never use (:mod:`data.paraphrase_text`); users
+of a real dataset may write their own. Every test item must have at least one paraphrase.
 
 :func:`semantics` turns it and the action recogniser into the evaluation's :class:`Semantics`: in
 replication r, each drawn item answers with one of its paraphrases chosen by a stream seeded by
@@ -20,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from data.humanml3d import PARAPHRASES_DIR, Caption, DatasetError, Problem, parse_captions
+from data.paraphrase_set import read_paraphrases
 from data.store import StoredItem
 from models.generator import TextBatch
 from models.recogniser import ActionRecogniser
@@ -30,41 +29,6 @@ from pipelines.feature_store import FeatureStore
 from pipelines.recogniser import labelled_items
 
 _STREAM = zlib.crc32(b"paraphrase")
-
-
-def _item_captions(captions: Sequence[Caption], item: StoredItem, fps: float) -> list[str]:
-    """The texts of ``captions`` (one clip's paraphrases) that describe ``item``."""
-    if item.item_id == item.clip_id:
-        return [c.text for c in captions if c.is_whole_clip]
-    span = (item.start, item.start + item.length)
-    return [c.text for c in captions if not c.is_whole_clip and (int(c.start * fps), int(c.end * fps)) == span]
-
-
-def read_paraphrases(root: Path, items: Sequence[StoredItem], fps: float) -> dict[str, list[str]] | None:
-    """item id -> its paraphrase texts, from ``<root>/paraphrases``; None when the folder does not exist.
-
-    Raises:
-        DatasetError: listing every unreadable file, bad caption line and item without a paraphrase.
-    """
-    folder = Path(root) / PARAPHRASES_DIR
-    if not folder.is_dir():
-        return None
-    by_clip: dict[str, list[Caption]] = {}
-    problems: list[Problem] = []
-    out: dict[str, list[str]] = {}
-    for item in items:
-        path = folder / f"{item.clip_id}.txt"
-        if item.clip_id not in by_clip:
-            by_clip[item.clip_id], clip_problems = parse_captions(path)
-            problems += clip_problems
-        texts = _item_captions(by_clip[item.clip_id], item, fps)
-        if texts:
-            out[item.item_id] = texts
-        elif path.is_file():
-            problems.append(Problem(str(path), f"no paraphrase of item {item.item_id}"))
-    if problems:
-        raise DatasetError(problems, f"the paraphrase set {folder}")
-    return out
 
 
 def paraphrase_sampler(by_item: dict[str, list[str]], store: FeatureStore, seed: int

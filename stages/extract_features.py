@@ -14,7 +14,8 @@ With ``data.on_error=fail`` (default) any bad input makes the stage list every p
 non-zero, writing nothing: the problems of reading the files and the clips whose features cannot
 be computed, in one run (the motions that read are put through feature extraction before the
 stage fails). Bad input includes the dataset as a whole: a clip id in two splits, an empty split
-(:func:`data.humanml3d.read_splits`), and statistics that cannot normalise (a zero std). With
+(:func:`data.humanml3d.read_splits`), a bad held-out paraphrase set (:mod:`data.paraphrase_set`,
+an error in both modes), and statistics that cannot normalise (a zero std). With
 ``data.on_error=skip`` the bad clips are left out, listed in ``skipped.json`` (each problem with
 its split and clip id) and summarised on the console, one line per kind of problem.
 """
@@ -39,6 +40,7 @@ from tqdm import tqdm
 from data.atomic import atomic_directory, check_output
 from data.features import check_stats, features_from_joints, grouped_mean_std
 from data.humanml3d import SPLITS, DatasetError, Problem, SplitData, read_splits
+from data.paraphrase_set import read_paraphrases
 from data.skeleton import Skeleton, get_skeleton
 from data.store import StoredItem, write_split
 from data.text_encoders import TextEncoder, build_text_encoder
@@ -220,6 +222,9 @@ def run(params: dict[str, Any]) -> Path:
     skipped += [(split_of[p.clip_id], p) for p in failed]
     if skipped and data_cfg["on_error"] == "fail":
         raise DatasetError([p for _, p in skipped], f"splits {list(SPLITS)} of {root}")
+    # checked here, in both modes, so that a bad paraphrase set stops the pipeline before training, not at the
+    # evaluation that reads it
+    read_paraphrases(root, [item for item in splits["test"].items if item.clip_id in feats], skeleton.fps)
     train_clips = {item.clip_id for item in splits["train"].items if item.clip_id in feats}
     if not train_clips:
         raise DatasetError([Problem(str(root / "train.txt"), "no usable training motion")])

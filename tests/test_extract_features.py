@@ -155,6 +155,26 @@ def test_fail_mode_lists_reading_and_extraction_problems_in_one_run(dataset, tmp
     assert not (tmp_path / "features").exists()
 
 
+@pytest.mark.parametrize("on_error", ["fail", "skip"])
+def test_a_bad_paraphrase_set_stops_the_stage_before_anything_is_written(dataset, tmp_path, monkeypatch, on_error):
+    """The evaluation would stop on it after every model trained: the stage checks it first, in both modes."""
+    root = tmp_path / "copy"
+    shutil.copytree(dataset, root)
+    (root / "paraphrases").mkdir()
+    (root / "paraphrases" / "0007.txt").write_text("somebody strolls#somebody/NOUN stroll/VERB#0.0#0.0\n")
+    (root / "paraphrases" / "0008.txt").write_text("somebody strolls#0.0#0.0\n")  # no word/POS field
+    params = _params(root, tmp_path / "features", on_error=on_error)
+    monkeypatch.setattr("pipelines.cli.load_params", lambda argv: params)
+    with pytest.raises(SystemExit) as exc:
+        main([])
+    lines = str(exc.value).splitlines()
+    assert lines[:2] == ["extract_features: bad input, nothing written.",
+                         f"2 problem(s) in the paraphrase set {root}/paraphrases:"]
+    assert lines[2].startswith(f"  - {root}/paraphrases/0008.txt:1: bad caption line: ")
+    assert lines[3:] == [f"  - {root}/paraphrases/0008.txt: no paraphrase of item 0008"]
+    assert not (tmp_path / "features").exists()
+
+
 @pytest.mark.slow  # a whole extract_features stage run
 def test_skip_mode_reports_what_it_skipped(dataset, tmp_path):
     root = _corrupt_copy(dataset, tmp_path)

@@ -11,11 +11,12 @@ import pytest
 from test_evaluation import CFG, StubEmbedder, world  # noqa: F401  (the fixture)
 
 from data.humanml3d import Caption, DatasetError
+from data.paraphrase_set import read_paraphrases
 from data.skeleton import HUMANML3D
 from data.store import StoredItem
 from pipelines.baselines import Retrieval
 from pipelines.evaluation import PARAPHRASE, Draw, Semantics, evaluate, references
-from pipelines.paraphrase import paraphrase_sampler, read_paraphrases
+from pipelines.paraphrase import paraphrase_sampler
 
 D = HUMANML3D.feature_dim
 ROWS_CFG = replace(CFG, paraphrase_rows=("Retrieval",))
