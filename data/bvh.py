@@ -5,9 +5,10 @@ skeleton (:mod:`data.skeleton`): the hierarchy follows ``skeleton.parents``, eac
 is its rest bone vector ``raw_offsets[j] * bone_lengths[j]`` (the rest pose is the skeleton's, not a
 T-pose: for HumanML3D facing +z with y up, the legs and arms hanging straight down, hips and collars
 sideways, the neck-to-head bone and the feet pointing forward), the root has position channels (its
-offset is zero, so they are the pelvis position) and every joint three rotation channels
-``Zrotation Xrotation Yrotation`` in degrees, continuous in time (:func:`continuous_euler`). Units are
-the joints' (metres for HumanML3D, millimetres for KIT-ML).
+offset is zero, so they are the pelvis position) and every joint three rotation channels in degrees,
+continuous in time (:func:`continuous_euler`): ``Zrotation Xrotation Yrotation``, or for a joint that
+order would put near gimbal lock in the clip, the order that keeps it farthest from it
+(:func:`rotation_orders`). Units are the joints' (metres for HumanML3D, millimetres for KIT-ML).
 
 Rotations are solved from the positions. In BVH a joint's rotation turns the offsets of its
 children, so:
@@ -55,10 +56,12 @@ from scipy.spatial.transform import Rotation
 from data.rotations import normalize, qbetween, quat_to_matrix
 from data.skeleton import Skeleton
 
-#: Rotation channels written for every joint (the most common BVH order).
-ROTATION_ORDER = "ZXY"
-ROOT_CHANNELS = ("Xposition", "Yposition", "Zposition", *(f"{axis}rotation" for axis in ROTATION_ORDER))
-JOINT_CHANNELS = tuple(f"{axis}rotation" for axis in ROTATION_ORDER)
+#: Rotation orders a joint's channels may take: the first (the most common BVH order) unless
+#: :func:`rotation_orders` finds it near gimbal lock for that joint.
+ROTATION_ORDERS = ("ZXY", "XYZ", "XZY", "YXZ", "YZX", "ZYX")
+#: The first order is kept while its middle angle stays within this many degrees of zero.
+KEEP_FIRST_ORDER_DEG = 60.0
+POSITION_CHANNELS = ("Xposition", "Yposition", "Zposition")
 #: Length of an End Site relative to its leaf joint's bone.
 END_SITE_FRACTION = 0.5
 AXES = {"X": 0, "Y": 1, "Z": 2}
@@ -142,8 +145,33 @@ def solve_rotations(joints: np.ndarray, skeleton: Skeleton, nodes: Sequence[_Nod
     return local
 
 
-def _hierarchy_lines(nodes: Sequence[_Node]) -> list[str]:
-    """The HIERARCHY section, nested by indentation."""
+def _euler(local: np.ndarray, order: str) -> np.ndarray:
+    """(T, 3) intrinsic Euler angles (degrees) of rotation matrices (T, 3, 3) in ``order``, e.g. ``"ZXY"``."""
+    with warnings.catch_warnings():  # gimbal lock: scipy picks one of the equivalent angle triples
+        warnings.simplefilter("ignore", UserWarning)
+        return Rotation.from_matrix(local).as_euler(order, degrees=True)
+
+
+def rotation_orders(local: np.ndarray) -> list[str]:
+    """Each node's rotation channel order for its local rotations ``local`` (T, N, 3, 3).
+
+    The middle angle of a Tait-Bryan order is in gimbal lock at +-90 degrees: there the other two
+    angles are not unique, and near it they trade large opposite changes for a small rotation, curves
+    an animator cannot edit. A node keeps ``ZXY`` (:data:`ROTATION_ORDERS`' first) while its middle
+    angle stays within :data:`KEEP_FIRST_ORDER_DEG` of zero in every frame; otherwise it takes the
+    order whose largest middle angle over the clip is smallest (the first of those in a tie). BVH
+    declares channels per joint, so each joint may have its own order.
+    """
+    orders = []
+    for n in range(local.shape[1]):
+        worst = [np.abs(_euler(local[:, n], order)[:, 1]).max() for order in ROTATION_ORDERS]
+        keep = worst[0] <= KEEP_FIRST_ORDER_DEG
+        orders.append(ROTATION_ORDERS[0] if keep else ROTATION_ORDERS[int(np.argmin(worst))])
+    return orders
+
+
+def _hierarchy_lines(nodes: Sequence[_Node], orders: Sequence[str]) -> list[str]:
+    """The HIERARCHY section, nested by indentation; ``orders`` holds each node's rotation channel order."""
     lines = ["HIERARCHY"]
     depth = [0] * len(nodes)
     open_blocks: list[int] = []
@@ -153,7 +181,7 @@ def _hierarchy_lines(nodes: Sequence[_Node]) -> list[str]:
             lines.append("\t" * len(open_blocks) + "}")
         depth[n] = len(open_blocks)
         pad = "\t" * depth[n]
-        channels = ROOT_CHANNELS if node.parent < 0 else JOINT_CHANNELS
+        channels = (POSITION_CHANNELS if node.parent < 0 else ()) + tuple(f"{axis}rotation" for axis in orders[n])
         lines += [f"{pad}{'ROOT' if node.parent < 0 else 'JOINT'} {node.name}", pad + "{",
                   f"{pad}\tOFFSET {_numbers(node.offset)}", f"{pad}\tCHANNELS {len(channels)} {' '.join(channels)}"]
         if node.end_site is not None:
@@ -170,20 +198,22 @@ def _numbers(values: np.ndarray) -> str:
 
 
 def continuous_euler(angles: np.ndarray) -> np.ndarray:
-    """(T, N, 3) intrinsic ``Z X Y`` Euler angles (degrees) made continuous in time, every frame's rotation kept.
+    """(T, N, 3) intrinsic Tait-Bryan angles (degrees, any order of three distinct axes, such as ``Z X Y``)
+    made continuous in time, every frame's rotation kept.
 
-    A rotation has two angle triples, ``(z, x, y)`` and ``(z + 180, 180 - x, y + 180)``, and each angle may
-    move by whole turns. Frame by frame, each angle of both triples is moved by whole turns to the nearest
-    of the previous frame's, and the triple nearer to it (summed absolute change) is kept. Without this
-    a spin wraps from +180 to -180 degrees, and near gimbal lock (x near +-90) the per-frame solution
-    jumps between the two triples, so an animation tool that interpolates or retimes the curves would
-    twist the joint through a full turn. The angles must be finite (a NaN would carry to every later
-    frame; :func:`write_bvh` refuses non-finite joints before solving).
+    A rotation has two angle triples, ``(a, b, c)`` and ``(a + 180, 180 - b, c + 180)`` (in any such
+    order ``Ra(180) Rb(180 - b) Rc(180) = Rb(b)``), and each angle may move by whole turns. Frame by
+    frame, each angle of both triples is moved by whole turns to the nearest of the previous frame's,
+    and the triple nearer to it (summed absolute change) is kept. Without this a spin wraps from +180
+    to -180 degrees, and near gimbal lock (b near +-90) the per-frame solution jumps between the two
+    triples, so an animation tool that interpolates or retimes the curves would twist the joint through
+    a full turn. The angles must be finite (a NaN would carry to every later frame; :func:`write_bvh`
+    refuses non-finite joints before solving).
     """
     out = np.array(angles, np.float64)
     for t in range(1, len(out)):
-        z, x, y = np.moveaxis(out[t], -1, 0)
-        triples = np.stack([out[t], np.stack([z + 180.0, 180.0 - x, y + 180.0], axis=-1)])  # (2, N, 3)
+        a, b, c = np.moveaxis(out[t], -1, 0)
+        triples = np.stack([out[t], np.stack([a + 180.0, 180.0 - b, c + 180.0], axis=-1)])  # (2, N, 3)
         triples += 360.0 * np.round((out[t - 1] - triples) / 360.0)
         other = np.abs(triples - out[t - 1]).sum(-1)  # (2, N)
         out[t] = np.where((other[1] < other[0])[:, None], triples[1], triples[0])
@@ -203,12 +233,10 @@ def write_bvh(joints: np.ndarray, skeleton: Skeleton, path: Path | str, fps: flo
         raise ValueError(f"{path}: the joint positions are not all finite")
     nodes = bvh_nodes(skeleton)
     local = solve_rotations(joints, skeleton, nodes)
-    with warnings.catch_warnings():  # gimbal lock: scipy picks one of the equivalent angle triples
-        warnings.simplefilter("ignore", UserWarning)
-        angles = Rotation.from_matrix(local.reshape(-1, 3, 3)).as_euler(ROTATION_ORDER, degrees=True)
-    angles = continuous_euler(angles.reshape(len(joints), -1, 3))
+    orders = rotation_orders(local)
+    angles = continuous_euler(np.stack([_euler(local[:, n], order) for n, order in enumerate(orders)], axis=1))
     values = np.concatenate([joints[:, 0], angles.reshape(len(joints), -1)], axis=1)
-    lines = _hierarchy_lines(nodes)
+    lines = _hierarchy_lines(nodes, orders)
     lines += ["MOTION", f"Frames: {len(joints)}", f"Frame Time: {1.0 / fps:.8f}"]
     lines += [_numbers(row) for row in values]
     path = Path(path)

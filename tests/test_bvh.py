@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from data.bvh import continuous_euler, read_bvh, write_bvh
+from data.bvh import ROTATION_ORDERS, continuous_euler, read_bvh, rotation_orders, write_bvh
 from data.kinematics import forward_kinematics, inverse_kinematics
 from data.skeleton import HUMANML3D, Skeleton
 from data.synthetic import SyntheticConfig, generate_motion
@@ -151,8 +151,27 @@ def test_written_header_parses_with_the_skeleton_hierarchy(tmp_path: Path) -> No
             parent = motion.names[motion.parents[motion.names.index(parent)]]
         assert parent == HUMANML3D.joint_names[HUMANML3D.parents[j]]
         np.testing.assert_allclose(motion.offsets[index], offsets[j], atol=1e-6)
-    assert motion.channels[0] == ("Xposition", "Yposition", "Zposition", "Zrotation", "Xrotation", "Yrotation")
-    assert all(c == ("Zrotation", "Xrotation", "Yrotation") for c in motion.channels[1:])
+    assert motion.channels[0][:3] == ("Xposition", "Yposition", "Zposition")
+    orders = ["".join(name[0] for name in own[-3:]) for own in motion.channels]
+    assert all(order in ROTATION_ORDERS and own[-3:] == tuple(f"{a}rotation" for a in order)
+               for order, own in zip(orders, motion.channels, strict=True))
+    assert len(motion.channels[0]) == 6 and all(len(own) == 3 for own in motion.channels[1:])
+
+
+def test_a_joint_near_gimbal_lock_takes_the_order_farthest_from_it() -> None:
+    """Z X Y's middle angle swept through 90 degrees: X Z Y keeps its middle angle within 10 degrees (Z Y X
+    within 10 too, X Y Z and Y Z X within 31, Y X Z at 88); a joint that stays far from lock keeps Z X Y."""
+    x = np.linspace(80.0, 100.0, 40)
+    lock = Rotation.from_euler("ZXY", np.stack([30 + x, x, -20 + x], -1), degrees=True).as_matrix()
+    mild = Rotation.from_euler("ZXY", np.stack([x / 4, -x / 4, x / 8], -1), degrees=True).as_matrix()
+    assert rotation_orders(np.stack([lock, mild], axis=1)) == ["XZY", "ZXY"]
+
+
+def test_rest_pose_writes_every_joint_in_zxy(tmp_path: Path) -> None:
+    """No joint is near gimbal lock in the rest pose: every joint keeps the common Z X Y order."""
+    rest = np.repeat(HUMANML3D.rest_directions()[None], 3, axis=0)  # every bone along its rest direction
+    motion = read_bvh(write_bvh(rest, HUMANML3D, tmp_path / "rest.bvh", HUMANML3D.fps))
+    assert all(own[-3:] == ("Zrotation", "Xrotation", "Yrotation") for own in motion.channels)
 
 
 @pytest.mark.parametrize(("text", "message"), [
@@ -185,10 +204,19 @@ def test_angle_curves_are_continuous_and_every_frame_exact(tmp_path: Path) -> No
     spun = np.einsum("tij,tkj->tki", spin, joints - root) + root
     path = write_bvh(spun, HUMANML3D, tmp_path / "spin.bvh", HUMANML3D.fps)
     values = np.loadtxt(path.read_text().split("Frame Time:")[1].splitlines()[1:])
-    # no wrap and no flip between the two triples (half a turn or more); near gimbal lock z and y may still
-    # trade tens of degrees for a small rotation (here about 95 each way for 11 degrees at x = 85)
-    assert np.abs(np.diff(values[:, 3:], axis=0)).max() < 120.0
-    assert np.abs(values[:, 5]).max() > 360.0  # the pelvis's Yrotation (yaw) keeps counting past a turn
+    channels = read_bvh(path).channels
+    angles = values[:, 3:].reshape(len(values), -1, 3)  # (T, N, 3): every joint's three rotation channels
+    orders = ["".join(name[0] for name in own[-3:]) for own in channels]
+    local = np.stack([Rotation.from_euler(order, angles[:, n], degrees=True).as_matrix()
+                      for n, order in enumerate(orders)], axis=1)
+    turned = np.degrees(Rotation.from_matrix((np.swapaxes(local[:-1], -1, -2) @ local[1:]).reshape(-1, 3, 3))
+                        .magnitude()).reshape(len(values) - 1, -1)
+    # no wrap, no flip between the two triples, and no gimbal-lock trade (with Z X Y on every joint the
+    # curves moved up to 147 degrees more than 3 x the rotation between two frames): each joint's three
+    # curves move about as much as the joint turns
+    assert (np.abs(np.diff(angles, axis=0)).sum(-1) - 3 * turned).max() < 15.0
+    assert np.abs(values[:, 5]).max() > 360.0  # the pelvis's yaw keeps counting past a turn (it stays Z X Y)
+    assert orders[0] == "ZXY"
     assert np.linalg.norm(read_bvh(path).joints(HUMANML3D.joint_names) - spun, axis=-1).max() < MM
     # near gimbal lock the solver's triple flips; the chosen curve does not, and the rotations are the same
     x = np.linspace(80.0, 100.0, 40)  # through x = 90, not on it (there z and y are not unique)
