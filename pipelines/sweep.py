@@ -25,7 +25,8 @@ Python literals read by ``ast.literal_eval``).
 How it runs (DESIGN.md "Facts about the stack"; reference/pipeline_stack.md sections 2-3):
 
 * before any work (prerequisites included) the stage's loop config is built once from params
-  (its checks, its inputs) and the cluster is checked to hold one trial; both are
+  (its checks, its inputs), every value the space can give is put through the stage's checks
+  (:func:`check_space_values`) and the cluster is checked to hold one trial; each is a
   :class:`SweepConfigError` (exit status 2 of ``stages.sweep``);
 * trials are ranked by ``sweep.settings.metric`` (``mode``), by default the target's: its
   validation metric (e.g. ``val_MPJPE_mm`` of ``train_vae``), measured on the ``val`` split
@@ -415,6 +416,8 @@ class SweepTarget:
         metric: what ranks the trials unless ``sweep.settings.metric`` names another: the
             validation metric ``validate`` returns, else ``loss``.
         mode: "min" or "max" for ``metric``.
+        checks: the stage's params checks (:func:`pipelines.stage.checks`: fast, no data read), run
+            on every value the space can give before Ray starts (:func:`check_space_values`).
     """
 
     stage: str
@@ -424,6 +427,7 @@ class SweepTarget:
     validate: Callable[[dict, dict, dict], dict[str, float]] | None = None
     metric: str = "loss"
     mode: str = "min"
+    checks: Sequence[Callable[[dict], object]] = ()
 
 
 @dataclass(frozen=True)
@@ -771,6 +775,40 @@ def ranking_settings(settings: SweepSettings, target: SweepTarget) -> SweepSetti
     return replace(settings, metric=settings.metric or target.metric, mode=settings.mode or target.mode)
 
 
+def dimension_values(dim: Dimension) -> list[Any]:
+    """The values of ``dim`` checked before a sweep: every value of a grid or a choice, the bounds of a
+    range (the upper one just inside it, as Tune draws below it)."""
+    if dim.kind in ("grid", "choice"):
+        return list(dim.args[0])
+    if dim.kind == "fixed":
+        return [dim.args[0]]
+    low, high = dim.args
+    return [low, high - 1] if dim.kind == "randint" else [low, math.nextafter(high, low)]
+
+
+def check_space_values(target: SweepTarget, params: dict, space: Mapping[str, Dimension]) -> None:
+    """Every value of :func:`dimension_values`, applied alone to ``params`` (with the space's fixed values),
+    through ``target.checks``: a value the stage refuses (``lr: grid([1e-3, -1])``) is a
+    :class:`SweepConfigError` naming the sweep key, before Ray starts, not a failed trial after others
+    trained. The params themselves are checked first (their error is the stage's own). Values are checked
+    one at a time, so a bad combination of good values is left to the trial."""
+    try:
+        for check in target.checks:
+            check(params)
+    except ValueError as err:
+        raise SweepConfigError(str(err)) from None
+    fixed = {key: dim.args[0] for key, dim in space.items() if dim.kind == "fixed"}
+    for key, dim in space.items():
+        for value in dimension_values(dim):
+            trial = apply_trial(params, target.stage, fixed | {key: value})
+            for check in target.checks:
+                try:
+                    check(trial)
+                except ValueError as err:
+                    raise SweepConfigError(f"sweep.{target.stage}.{key}: a trial would take {value!r}, which the "
+                                           f"stage refuses: {err}") from None
+
+
 def check_loop_config(target: SweepTarget, params: dict) -> None:
     """Build the swept run's loop config once from ``params``: its checks and inputs, before any work.
 
@@ -809,9 +847,10 @@ class SweepPlan:
 
 
 def plan_sweep(target: SweepTarget, params: dict, repo_root: Path) -> SweepPlan:
-    """Every check that needs no Ray: the shared sections (``ray`` above all), ``sweep.settings``, the space,
-    the stage's params and inputs (its loop config is built once) and the output folder. Raises
-    :class:`SweepConfigError` (or FileNotFoundError for a missing input)."""
+    """Every check that needs no Ray: the shared sections (``ray`` above all), ``sweep.settings``, the space
+    and each value it can give (:func:`check_space_values`), the stage's params and inputs (its loop config
+    is built once) and the output folder. Raises :class:`SweepConfigError` (or FileNotFoundError for a
+    missing input)."""
     stage = target.stage
     problems = check_shared(params, ())
     if problems:
@@ -819,6 +858,7 @@ def plan_sweep(target: SweepTarget, params: dict, repo_root: Path) -> SweepPlan:
     sweep = params.get("sweep") or {}
     settings = ranking_settings(SweepSettings.from_dict(sweep.get("settings")), target)
     space = parse_space(stage, sweep.get(stage), params[stage])
+    check_space_values(target, params, space)
     opts = trial_ray_options(params, settings)
     check_loop_config(target, params)
     out_dir = repo_root / params["paths"]["artifacts"] / "sweeps" / stage

@@ -24,7 +24,7 @@ from pipelines.config import check_choice, check_keys, check_number
 from pipelines.latent_cache import collate_words, latent_dataset
 from pipelines.mld_family import load_mld
 from pipelines.runner import Components, StepContext, TrainSpec
-from pipelines.stage import TrainingStage, loop_config, main
+from pipelines.stage import TrainingStage, checks, loop_config, main
 
 if TYPE_CHECKING:
     from pipelines.sweep import SweepTarget
@@ -106,7 +106,7 @@ def sweep_target(params: dict[str, Any]) -> SweepTarget:
     from pipelines.validation import motionlcm_scores  # evaluation code: only when sweeping
 
     return SweepTarget(stage="distill_lcm", spec=STAGE.spec, loop_config=sweep_loop_config,
-                       validate=motionlcm_scores, metric="val_FID", mode="min")
+                       validate=motionlcm_scores, metric="val_FID", mode="min", checks=checks(STAGE))
 
 
 if __name__ == "__main__":

@@ -37,7 +37,7 @@ from __future__ import annotations
 from typing import TYPE_CHECKING, Any
 
 from pipelines.emdm_training import training_stage
-from pipelines.stage import loop_config, main
+from pipelines.stage import checks, loop_config, main
 
 if TYPE_CHECKING:
     from pipelines.sweep import SweepTarget
@@ -57,7 +57,7 @@ def sweep_target(params: dict[str, Any]) -> SweepTarget:
     from pipelines.validation import emdm_scores  # evaluation code: only when sweeping
 
     return SweepTarget(stage="train_emdm", spec=STAGE.spec, loop_config=sweep_loop_config,
-                       validate=emdm_scores, metric="val_FID", mode="min")
+                       validate=emdm_scores, metric="val_FID", mode="min", checks=checks(STAGE))
 
 
 if __name__ == "__main__":

@@ -189,7 +189,7 @@ def sweep_target(params: dict[str, Any]) -> SweepTarget:
 
     return SweepTarget(stage="train_evaluator", spec=MATCHING.spec, loop_config=matching_loop_config,
                        prerequisite=movement_prerequisite, validate=evaluator_scores,
-                       metric="val_R_precision_top3", mode="max")
+                       metric="val_R_precision_top3", mode="max", checks=[*checks(MATCHING), check_section])
 
 
 def main(argv: Sequence[str] | None = None) -> None:

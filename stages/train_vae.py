@@ -23,7 +23,7 @@ from pipelines.cli import repo_path
 from pipelines.config import check_choice, check_fields, check_heads, check_keys, check_number
 from pipelines.feature_store import FeatureStore
 from pipelines.runner import Components, StepContext, TrainSpec
-from pipelines.stage import TrainingStage, loop_config, main
+from pipelines.stage import TrainingStage, checks, loop_config, main
 
 if TYPE_CHECKING:
     from pipelines.sweep import SweepTarget
@@ -103,7 +103,7 @@ def sweep_target(params: dict[str, Any]) -> SweepTarget:
     from pipelines.validation import vae_scores  # evaluation code: only when sweeping
 
     return SweepTarget(stage="train_vae", spec=STAGE.spec, loop_config=sweep_loop_config, validate=vae_scores,
-                       metric="val_MPJPE_mm", mode="min")
+                       metric="val_MPJPE_mm", mode="min", checks=checks(STAGE))
 
 
 if __name__ == "__main__":

@@ -49,6 +49,8 @@ from pipelines.sweep import (
     apply_trial,
     best_row,
     check_outcome,
+    check_space_values,
+    dimension_values,
     expected_trials,
     experiment_name,
     fit_concurrency,
@@ -527,7 +529,9 @@ def test_interrupted_smoke_sweep_resumes_and_writes_results(ray_cluster: Any, tm
     monkeypatch.setattr(sweep, "load_params", lambda argv: params)
     # Ranked by the training loss reported every 2 steps, so that ASHA has rungs to stop a trial at
     # (a validation metric is reported once, after training); validation ranking has its own tests.
-    by_loss = partial(replace, validate=None, metric="loss", mode="min")
+    # Without the up-front value checks, the trial with lr -1 fails in training: a trial can fail in ways no
+    # check sees (a bad combination of values, memory), and the failure must be a row of the table.
+    by_loss = partial(replace, validate=None, metric="loss", mode="min", checks=())
     monkeypatch.setattr(sweep, "load_target", lambda name, p: by_loss(stages.train_evaluator.sweep_target(p)))
     monkeypatch.setattr(sweep, "run_sweep", partial(run_sweep, callbacks=[InterruptOnce(tmp_path / "interrupted")]))
     out = tmp_path / "artifacts" / "sweeps" / STAGE
@@ -607,6 +611,55 @@ def test_bad_ray_settings_exit_2_before_ray_starts(monkeypatch: pytest.MonkeyPat
     err = [line for line in capsys.readouterr().err.strip().splitlines() if line.startswith(("sweep ", "ray."))]
     assert err == ["sweep train_vae: ray.num_workers: expected an integer >= 0, got -1",
                    "ray.use_gpu: expected one of ['auto', True, False], got 'maybe'"]
+
+
+def test_dimension_values_are_every_listed_value_and_the_bounds_a_trial_can_take() -> None:
+    assert dimension_values(Dimension("grid", ([1, 2, 3],))) == [1, 2, 3]
+    assert dimension_values(Dimension("choice", ([[1, 2], [3, 4]],))) == [[1, 2], [3, 4]]
+    assert dimension_values(Dimension("fixed", (400,))) == [400]
+    assert dimension_values(Dimension("randint", (2, 5))) == [2, 4]  # high excluded
+    low, high = dimension_values(Dimension("uniform", (0.0, 1.0)))
+    assert low == 0.0 and high < 1.0 and high == math.nextafter(1.0, 0.0)  # Tune draws below the upper bound
+
+
+def test_every_value_of_the_space_meets_the_stages_checks_before_any_trial() -> None:
+    """A value the stage refuses is a config error naming the sweep key; an upper bound the trials never
+    take (uniform's high) and a fixed value applied with the others are checked as the trials see them."""
+
+    def check(params: dict) -> None:
+        cfg = params["toy"]
+        if not 0 <= cfg["dropout"] < 1:
+            raise ValueError(f"toy.dropout: expected 0 <= dropout < 1, got {cfg['dropout']}")
+        if cfg["loop"]["batch_size"] > 64 and cfg["lr"] > 0.1:
+            raise ValueError("toy: lr > 0.1 needs batch_size <= 64")
+
+    target = SweepTarget(stage="toy", spec=TOY_SPEC, loop_config=toy_loop_config, checks=[check])
+    params = {"toy": {"dropout": 0.1, "lr": 0.01, "loop": {"batch_size": 16}}}
+    space = {"dropout": Dimension("uniform", (0.0, 1.0)), "lr": Dimension("grid", ([0.01, 0.5],))}
+    check_space_values(target, params, space)  # 1.0 itself is never drawn
+    space["loop.batch_size"] = Dimension("fixed", (128,))  # with lr 0.5: refused
+    with pytest.raises(SweepConfigError, match=r"^sweep\.toy\.lr: a trial would take 0\.5, which the stage refuses: "
+                                               r"toy: lr > 0\.1 needs batch_size <= 64$"):
+        check_space_values(target, params, space)
+    space = {"dropout": Dimension("choice", ([0.0, 1.5],))}
+    with pytest.raises(SweepConfigError, match=r"^sweep\.toy\.dropout: a trial would take 1\.5, .*got 1\.5$"):
+        check_space_values(target, params, space)
+    assert params == {"toy": {"dropout": 0.1, "lr": 0.01, "loop": {"batch_size": 16}}}  # params left as they were
+
+
+def test_a_bad_value_in_a_stages_space_exits_2_before_ray_starts(monkeypatch: pytest.MonkeyPatch,
+                                                                 capsys: pytest.CaptureFixture) -> None:
+    """The real stages' checks, on the committed params with one bad grid value."""
+    import pipelines.sweep
+
+    monkeypatch.setattr(pipelines.sweep, "ensure_ray", _no_ray)
+    params = compose_params(["scale=smoke"])
+    params["sweep"]["train_vae"]["loop"]["warmup_steps"] = "choice([0, -5])"
+    exit_ = _sweep_main(monkeypatch, params, "train_vae")
+    assert exit_.code == 2
+    err = [line for line in capsys.readouterr().err.strip().splitlines() if line.startswith("sweep ")]
+    assert err == ["sweep train_vae: sweep.train_vae.loop.warmup_steps: a trial would take -5, which the stage "
+                   "refuses: train_vae.loop.warmup_steps: expected an integer >= 0, got -5"]
 
 
 def test_cfg_prints_the_plan_without_starting_ray(small_store: dict[str, Any], tmp_path: Path,
