@@ -109,17 +109,20 @@ def make_trajectory(shape: str, frames: int, *, size: float | None = None, heigh
     return path.astype(np.float32)
 
 
-def load_trajectory(path: str | Path, frames: int) -> np.ndarray:
+def load_trajectory(path: str | Path, frames: int, fps: float) -> np.ndarray:
     """(frames, 3) float32 pelvis positions (metres, y up) from a ``.npy`` file.
 
     The file holds one (T, 3) array of real numbers with T == ``frames``, on the axes of the motions
     ``stages.generate`` writes; it is used as is (a HumanML3D motion starts at the origin facing +z with
-    x to its left, a KIT-ML one facing -z: ``data.skeleton.Skeleton.front``).
+    x to its left, a KIT-ML one facing -z: ``data.skeleton.Skeleton.front``). At ``fps`` frames a second
+    its mean speed must not pass :data:`MAX_SPEED`, as the shapes' (a path in millimetres or
+    centimetres would otherwise be followed as metres).
 
     Raises:
         FileNotFoundError: there is no such file.
         ValueError: the file is not a loadable ``.npy`` array (e.g. pickled objects or an ``.npz``
-            archive), the array is not (T, 3) real numbers, has NaN or inf values, or T != frames.
+            archive), the array is not (T, 3) real numbers, has NaN or inf values, T != frames, or the
+            path is faster than :data:`MAX_SPEED`.
     """
     path = Path(path)
     if not path.is_file():
@@ -147,5 +150,10 @@ def load_trajectory(path: str | Path, frames: int) -> np.ndarray:
                          f"(first: frame {bad[0]})")
     if len(positions) != frames:
         raise ValueError(f"trajectory file {path}: length mismatch: the file has {len(positions)} frames, "
-                         f"--length is {frames}")
+                         f"the motion {frames}")
+    if frames > 1:
+        speed = float(np.linalg.norm(np.diff(positions, axis=0), axis=1).sum()) * fps / (frames - 1)
+        if speed > MAX_SPEED:
+            raise ValueError(f"trajectory file {path}: the pelvis moves at {speed:.3g} m/s on average at {fps:g} fps, "
+                             f"faster than {MAX_SPEED} m/s: the positions must be in metres")
     return positions

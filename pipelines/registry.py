@@ -65,6 +65,7 @@ class ModelFamily:
         train_stages: training stages whose outputs the rows load (the eval stage's data deps).
         params: params keys the rows read (beyond ``stages/evaluate.py``'s own).
         generator: function name in ``module``: ``(EvalContext, GenerateOptions) -> Generator``, or None.
+        controlled: its generator follows a pelvis trajectory (``stages.generate --trajectory``, ``--refine``).
         description: one line for ``--help`` and the README.
     """
 
@@ -74,6 +75,7 @@ class ModelFamily:
     train_stages: tuple[str, ...] = ()
     params: tuple[str, ...] = ()
     generator: str | None = None
+    controlled: bool = False
     description: str = ""
 
     def _function(self, attr: str) -> Callable[..., Any]:
@@ -103,7 +105,7 @@ FAMILIES: dict[str, ModelFamily] = {family.name: family for family in (
                 train_stages=("train_vae", "train_mld", "distill_lcm", "train_controlnet"),
                 params=("sample.motionlcm_guidance", "sample.control_refine_steps", "sample.control_refine_lr",
                         "sample.control_refine_project"),
-                generator="controlnet_generator",
+                generator="controlnet_generator", controlled=True,
                 description="MotionLCM's ControlNet: one step, following a pelvis trajectory"),
     ModelFamily("emdm", "pipelines.emdm_family", "emdm_rows", train_stages=("train_emdm",),
                 params=("sample.emdm_guidance", "sample.motion_batch"), generator="emdm_generator",

@@ -10,8 +10,9 @@
 
 Prompts. ``--text`` (repeatable) and ``--prompts FILE`` (one prompt per line, ``TEXT`` or
 ``TEXT | LENGTH``; blank lines and lines starting with ``#`` are skipped; a prompt without a
-length gets ``--length``) are generated together: the models and the text encoder are loaded once
-and the prompts sampled in batches of :data:`BATCH` (batch ``i`` with seed ``--seed + i``). For
+length gets ``--length``) are generated together: the models and the text encoder are loaded once,
+and prompt ``k`` (its position, from 0) is sampled on its own with seed ``--seed + k``, so a motion
+depends on its text, length and seed only, not on the other prompts of the run. For
 ``--model emdm-action`` each prompt is one of ``train_emdm_action``'s action labels (an unknown
 label's error lists them).
 
@@ -20,13 +21,16 @@ directory that receives ``NN_<words>.<format>`` per prompt, ``NN`` its position 
 ``--text`` prompts first, then the file's), ``<words>`` the start of its text, and the format
 ``--format`` (default gif). Formats: ``.gif``/``.mp4`` animation, ``.png`` frame strip, ``.npy``
 global joints (T, J, 3) in metres (KIT-ML's millimetres converted), ``.bvh`` the skeleton's joint rotations
-in its own units (:mod:`data.bvh`; KIT-ML: millimetres).
+in its own units (:mod:`data.bvh`; KIT-ML: millimetres). Existing files are replaced. Every file is
+written under a temporary name and renamed once all are written, so a failed run leaves none of
+them; a motion that is not finite (NaN, e.g. from an extreme ``--guidance``) fails before any write.
 Models are read from ``paths.artifacts`` (``dvc repro`` first).
 
 Everything that can be checked without a model is checked before loading one (one line, exit
 status 1): the model name, the prompts (none empty), ``--part``/``--segment``, ``--steps`` (at least
 1 and what the family samples with; the trained step counts are read from params, and the family
-checks the loaded model again), ``--guidance`` and ``--size``, each length against the feature
+checks the loaded model again), ``--guidance``, ``--seed``, ``--size``, ``--trajectory`` and ``--refine``
+against the family (a trajectory for a controlled family only, and one for it), each length against the feature
 store's training motions (its shortest to its longest), the shared params sections (``sample``
 overrides), the output names and formats (MP4 needs ffmpeg on PATH) and that the outputs can be
 written. An ``--out`` ending in ``/`` is a directory whatever its name.
@@ -74,7 +78,7 @@ from data.physics import foot_skating_ratio
 from data.render import joints_of, render_animation, render_strip
 from data.skeleton import get_skeleton
 from data.trajectories import SHAPES, load_trajectory, make_trajectory
-from models.generator import ControlledGenerator, Hint
+from models.generator import Hint
 from models.motiondiffuse import PART_UNIONS, REST
 from models.motionlcm import TIMESTEPS as LCM_STEPS
 from pipelines.cli import artifacts_dir, check_shared, repo_path
@@ -93,8 +97,10 @@ FORMATS = ("gif", "mp4", "png", "npy", "bvh")
 DEFAULT_FORMAT = "gif"
 #: Suffixes of the formats drawn with matplotlib (seconds per motion; written in parallel).
 DRAWN = (".gif", ".mp4", ".png")
-#: Prompts sampled together: bounds the memory of a long prompt file.
-BATCH = 32
+#: Seeds torch takes: prompt k samples with ``--seed + k``.
+MAX_SEED = 2**63 - 1
+#: The longest file name most file systems take, in bytes.
+NAME_MAX = 255
 #: Network evaluations per motion from which the command says that sampling takes a while.
 SLOW_NFE = 200
 
@@ -168,7 +174,7 @@ def parse_prompt_file(path: Path, default_length: int) -> list[Prompt]:
     ValueError naming the file and line of a bad one (an empty text, a length that is not an integer).
     """
     try:
-        lines = path.read_text(encoding="utf-8").splitlines()
+        lines = path.read_text(encoding="utf-8-sig").splitlines()  # -sig: a byte-order mark is not text
     except FileNotFoundError:
         raise FileNotFoundError(f"--prompts {path}: no such file") from None
     except (OSError, UnicodeDecodeError) as err:
@@ -183,7 +189,7 @@ def parse_prompt_file(path: Path, default_length: int) -> list[Prompt]:
         text, length = text.strip(), length.strip()
         if not text:
             raise ValueError(f"{where}: no text before '|' (expected TEXT or TEXT | LENGTH)")
-        if bar and not length.isdigit():
+        if bar and not re.fullmatch(r"[0-9]+", length):
             raise ValueError(f"{where}: length {length!r} is not a whole number of frames (expected TEXT | LENGTH)")
         prompts.append(Prompt(text, int(length) if bar else default_length, where))
     if not prompts:
@@ -292,11 +298,17 @@ def output_paths(out: Path, fmt: str | None, prompts: Sequence[Prompt], director
 
 
 def check_writable(out: Path, paths: Sequence[Path]) -> None:
-    """ValueError naming ``--out`` when a path is a directory, or its nearest existing ancestor is a file or
-    not writable (so that nothing fails after sampling)."""
+    """ValueError naming ``--out`` when a path is a directory or a read-only file, its name (or its temporary
+    name, :func:`partial_path`) is too long, or its nearest existing ancestor is a file or not writable (so
+    that nothing fails after sampling)."""
     for path in paths:
         if path.is_dir():
             raise ValueError(f"--out {out}: {path} is a directory")
+        if path.exists() and not os.access(path, os.W_OK):
+            raise ValueError(f"--out {out}: {path} exists and is read-only")
+        if len(partial_path(path).name.encode()) > NAME_MAX:
+            raise ValueError(f"--out {out}: the file name {path.name!r} is too long (at most "
+                             f"{NAME_MAX - len(partial_path(path).name.encode()) + len(path.name.encode())} bytes)")
     folder = paths[0].parent
     while not folder.exists() and folder != folder.parent:
         folder = folder.parent
@@ -304,6 +316,11 @@ def check_writable(out: Path, paths: Sequence[Path]) -> None:
         raise ValueError(f"--out {out}: {folder} is a file, not a directory")
     if not os.access(folder, os.W_OK | os.X_OK):
         raise ValueError(f"--out {out}: cannot write into {folder} (permission denied)")
+
+
+def partial_path(path: Path) -> Path:
+    """Where ``path`` is written before the rename that publishes every output together (:func:`write_all`)."""
+    return path.with_name(f".{path.stem}.partial{path.suffix}")
 
 
 def slug(text: str, limit: int = 40) -> str:
@@ -324,7 +341,8 @@ def write_motion(joints: np.ndarray, path: Path, caption: str, skeleton_name: st
     metres = joints_of(joints, skeleton=skeleton)
     target = None if target_path is None else target_path * skeleton.unit
     if fmt == "npy":
-        np.save(path, metres.astype(np.float32))
+        with open(path, "wb") as file:  # np.save on a name would append .npy to "x.NPY"
+            np.save(file, metres.astype(np.float32))
         return path
     if fmt == "png":
         return render_strip(metres, path, caption, skeleton, target_path=target)
@@ -343,10 +361,10 @@ def pelvis_path(trajectory: str, length: int, store: FeatureStore, size: float |
         path = make_trajectory(trajectory, length, size=size, height=float(store.mean[3]) * skeleton.unit,
                                fps=skeleton.fps)
         return path * np.array([skeleton.front, 1.0, skeleton.front], dtype=path.dtype) / skeleton.unit
-    if trajectory.endswith(".npy"):
+    if trajectory.lower().endswith(".npy"):
         if size is not None:
             raise ValueError("--size applies to the shapes, not to a .npy trajectory")
-        return load_trajectory(trajectory, length) / skeleton.unit
+        return load_trajectory(trajectory, length, skeleton.fps) / skeleton.unit
     raise ValueError(f"--trajectory {trajectory!r}: use one of {', '.join(SHAPES)} or a .npy file")
 
 
@@ -417,6 +435,14 @@ def plan(params: dict[str, Any], model: str, prompts: Sequence[Prompt], out: Pat
         if prompt.length < 1:
             raise ValueError(f"{prompt.source}: length {prompt.length} must be at least 1 frame")
     check_steps(model, steps, params)
+    if not 0 <= seed <= MAX_SEED - (len(prompts) - 1):
+        raise ValueError(f"--seed {seed}: must be a whole number from 0 to {MAX_SEED - (len(prompts) - 1)} (prompt k "
+                         "samples with --seed + k)")
+    if entry.controlled and trajectory is None:
+        raise ValueError(f"--model {model} follows a trajectory: pass --trajectory ({', '.join(SHAPES)} or a .npy)")
+    if not entry.controlled and (trajectory is not None or refine):
+        controlled = ", ".join(sorted(name for name, e in FAMILIES.items() if e.controlled))
+        raise ValueError(f"--trajectory/--refine need a controlled model ({controlled}), not {model!r}")
     if guidance is not None and not (math.isfinite(guidance) and guidance >= 0):
         raise ValueError(f"--guidance {guidance}: must be a finite number, at least 0")
     if size is not None:
@@ -429,21 +455,37 @@ def plan(params: dict[str, Any], model: str, prompts: Sequence[Prompt], out: Pat
                    trajectory, size, parts, segments)
 
 
+def prompt_path(trajectory: str, prompt: Prompt, store: FeatureStore, size: float | None) -> np.ndarray:
+    """``--trajectory`` at one prompt's length (:func:`pelvis_path`); an error names the prompt."""
+    try:
+        return pelvis_path(trajectory, prompt.length, store, size)
+    except ValueError as err:
+        raise ValueError(f"{prompt.source}: {err}") from None
+
+
+def check_finite(joints: np.ndarray, prompt: Prompt, request: Request) -> None:
+    """ValueError naming the prompt when its motion holds NaN or infinity (nothing is written then)."""
+    if not np.isfinite(joints).all():
+        causes = [f"--guidance {request.options.guidance:g}"] if request.options.guidance is not None else []
+        causes += [f"--trajectory {request.trajectory}"] if request.trajectory is not None else []
+        why = f": check {' and '.join(causes)}" if causes else ""
+        raise ValueError(f"{prompt.source}: the model's motion is not finite (NaN or infinity){why}; nothing written")
+
+
 def sample_all(ctx: EvalContext, generator: Any, request: Request,
-               target: np.ndarray | None) -> list[np.ndarray]:
-    """Every prompt's joints, sampled in batches of :data:`BATCH` (batch ``i`` with seed ``seed + i``)."""
+               targets: Sequence[np.ndarray | None]) -> list[np.ndarray]:
+    """Every prompt's joints: prompt ``k`` sampled on its own with seed ``request.seed + k`` (and ``targets[k]``,
+    its pelvis path, for a controlled model), so that its motion does not depend on the other prompts."""
     joints = []
-    for first in range(0, len(request.prompts), BATCH):
-        batch = request.prompts[first : first + BATCH]
-        text = ctx.store.encode_prompts([p.text for p in batch])
-        lengths = np.array([p.length for p in batch])
-        seed = request.seed + first // BATCH
-        if target is not None:
-            hint = pelvis_hint(target, len(batch), ctx.store.joints_num)
-            motions = generator.sample(text, lengths, seed, hint=hint)
-        else:
+    for k, (prompt, target) in enumerate(zip(request.prompts, targets, strict=True)):
+        text, lengths, seed = ctx.store.encode_prompts([prompt.text]), np.array([prompt.length]), request.seed + k
+        if target is None:
             motions = generator.sample(text, lengths, seed)
-        joints += ctx.store.to_joints(motions, lengths)
+        else:
+            motions = generator.sample(text, lengths, seed, hint=pelvis_hint(target, 1, ctx.store.joints_num))
+        [motion] = ctx.store.to_joints(motions, lengths)
+        check_finite(motion, prompt, request)
+        joints.append(motion)
     return joints
 
 
@@ -451,33 +493,25 @@ def run_request(params: dict[str, Any], request: Request) -> list[Path]:
     """Load the model once, sample every prompt and write one file per prompt; returns the paths."""
     ctx = EvalContext(params, artifacts_dir(params), repo_path(params, "features.out"))
     skeleton = params["data"]["skeleton"]
-    longest = max(p.length for p in request.prompts)
-    target = None if request.trajectory is None else pelvis_path(request.trajectory, longest, ctx.store,
-                                                                 request.size)
+    targets = [None if request.trajectory is None else prompt_path(request.trajectory, prompt, ctx.store, request.size)
+               for prompt in request.prompts]
     generator = family(request.model).build_generator(ctx, request.options)
     if getattr(generator, "nfe", 0) >= SLOW_NFE:
         print(f"{generator.name}: {generator.nfe} network evaluations per motion (and per --part or --segment); "
               "on a CPU this takes minutes", file=sys.stderr, flush=True)
     if request.parts or request.segments:
-        motion, caption = generate_composed(ctx, generator, request.parts, request.segments, longest, request.seed)
-        [joints] = ctx.store.to_joints(motion, [longest])
-        request.paths[0].parent.mkdir(parents=True, exist_ok=True)
-        return [write_motion(joints, request.paths[0], caption, skeleton)]
-    if isinstance(generator, ControlledGenerator):
-        if target is None:
-            raise ValueError(f"--model {request.model} follows a trajectory: pass --trajectory ({', '.join(SHAPES)} "
-                             "or a .npy)")
-    elif target is not None or request.options.refine:
-        raise ValueError(f"--trajectory/--refine need a controlled model (motionlcm-control), not {request.model!r}")
-    all_joints = sample_all(ctx, generator, request, target)
+        [prompt] = request.prompts
+        motion, caption = generate_composed(ctx, generator, request.parts, request.segments, prompt.length,
+                                            request.seed)
+        [joints] = ctx.store.to_joints(motion, [prompt.length])
+        check_finite(joints, prompt, request)
+        return write_all([(joints, request.paths[0], caption, skeleton, None)])
+    all_joints = sample_all(ctx, generator, request, targets)
     bones = get_skeleton(skeleton)
-    for folder in {path.parent for path in request.paths}:
-        folder.mkdir(parents=True, exist_ok=True)
     jobs = []
-    for joints, path, prompt in zip(all_joints, request.paths, request.prompts, strict=True):
+    for joints, path, prompt, target in zip(all_joints, request.paths, request.prompts, targets, strict=True):
         if target is not None:
-            error = bones.unit * np.linalg.norm(joints[:, CONTROL_JOINTS["pelvis"]] - target[: len(joints)],
-                                                axis=-1).mean()
+            error = bones.unit * np.linalg.norm(joints[:, CONTROL_JOINTS["pelvis"]] - target, axis=-1).mean()
             skating = foot_skating_ratio(joints, bones)
             print(f"{path.name}: pelvis {error:.3f} m from the trajectory on average; feet skating in "
                   f"{skating:.0%} of frame pairs")
@@ -490,12 +524,30 @@ def _write_job(job: tuple[np.ndarray, Path, str, str, np.ndarray | None]) -> Pat
 
 
 def write_all(jobs: Sequence[tuple[np.ndarray, Path, str, str, np.ndarray | None]]) -> list[Path]:
-    """:func:`write_motion` for every job, in order; drawn formats (seconds per motion) on one process per core."""
+    """:func:`write_motion` for every job (drawn formats, seconds per motion, on one process per core), each to
+    its :func:`partial_path`, then every file renamed to its path: a failure leaves no output, and an error
+    names the file. Returns the paths in order."""
+    paths = [job[1] for job in jobs]
+    for folder in {path.parent for path in paths}:
+        folder.mkdir(parents=True, exist_ok=True)
+    partial = [(joints, partial_path(path), *rest) for joints, path, *rest in jobs]
     workers = min(len(jobs), len(os.sched_getaffinity(0)))
-    if workers < 2 or not any(job[1].suffix in DRAWN for job in jobs):
-        return [_write_job(job) for job in jobs]
-    with ProcessPoolExecutor(max_workers=workers, mp_context=get_context("fork")) as pool:
-        return list(pool.map(_write_job, jobs))
+    try:
+        if workers < 2 or not any(path.suffix.lower() in DRAWN for path in paths):
+            for job in partial:
+                _write_job(job)
+        else:
+            with ProcessPoolExecutor(max_workers=workers, mp_context=get_context("fork")) as pool:
+                list(pool.map(_write_job, partial))
+        for job, path in zip(partial, paths, strict=True):
+            os.replace(job[1], path)
+    except OSError as err:
+        final = dict(zip([str(job[1]) for job in partial], map(str, paths), strict=True))
+        raise OSError(f"cannot write {final.get(str(err.filename), 'the outputs')}: {err.strerror or err}") from err
+    finally:
+        for job in partial:
+            job[1].unlink(missing_ok=True)
+    return paths
 
 
 def generate(params: dict[str, Any], model: str, texts: Sequence[str], lengths: Sequence[int], out: Path,
@@ -589,6 +641,8 @@ def main(argv: Sequence[str] | None = None) -> None:
     if unknown:
         parser.error(f"unrecognized arguments: {' '.join(unknown)}")
     try:
+        if not args.out.strip():  # Path("") is the working directory
+            raise ValueError("--out is empty: give a file (walk.gif) or a directory (out/)")
         parts, segments = check_composition(args)
         params = load_params(overrides)
         problems = check_shared(params, ())

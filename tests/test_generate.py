@@ -76,6 +76,17 @@ def test_output_names(tmp_path: Path) -> None:
     assert not (tmp_path / "runs.v2").exists()
 
 
+def test_a_prompt_file_with_a_byte_order_mark_and_a_length_in_other_digits(tmp_path: Path) -> None:
+    """Windows editors start UTF-8 files with a BOM: the first line stays a comment. A length is ASCII digits
+    (``str.isdigit`` takes "²", which ``int`` refuses without naming the line)."""
+    path = tmp_path / "prompts.txt"
+    path.write_bytes("\ufeff# my prompts\r\na person walks | 60\r\n".encode())
+    assert generate.parse_prompt_file(path, 120) == [Prompt("a person walks", 60, f"{path}:2")]
+    path.write_text("a person walks | \u00b2\n")
+    with pytest.raises(ValueError, match=rf"^{path}:1: length '\u00b2' is not a whole number of frames"):
+        generate.parse_prompt_file(path, 120)
+
+
 def test_output_paths_that_cannot_be_written_fail_before_sampling(tmp_path: Path) -> None:
     """A path that is a directory, or under a file, is refused while nothing has been sampled."""
     prompts = [Prompt("a person walks", 60, "x"), Prompt("a person jumps", 60, "y")]
@@ -89,6 +100,46 @@ def test_output_paths_that_cannot_be_written_fail_before_sampling(tmp_path: Path
     # a bare extension is a missing file name, not a hidden directory (it became ".bvh/00_....gif")
     with pytest.raises(ValueError, match=r"--out .*\.bvh: a file name is missing before \.bvh"):
         generate.output_paths(tmp_path / ".bvh", None, prompts[:1])
+    locked = tmp_path / "locked.npy"
+    locked.write_bytes(b"")
+    locked.chmod(0o444)
+    real_access = os.access
+    with pytest.MonkeyPatch.context() as mp:  # as a user other than root (root may write anything)
+        mp.setattr(os, "access", lambda path, mode: Path(path) != locked and real_access(path, mode))
+        with pytest.raises(ValueError, match=r"locked.npy exists and is read-only"):
+            generate.output_paths(locked, None, prompts[:1])
+    with pytest.raises(ValueError, match=r"the file name 'x{250}.npy' is too long \(at most 246 bytes\)"):
+        generate.output_paths(tmp_path / ("x" * 250 + ".npy"), None, prompts[:1])
+
+
+def test_outputs_appear_together_or_not_at_all(tmp_path: Path) -> None:
+    """Every file is written under a temporary name and renamed when all are written: a motion that fails to
+    write (a BVH of non-finite joints) leaves neither its file nor the one written before it. An upper-case
+    .NPY is the file named (np.save on a name appends .npy)."""
+    import numpy as np
+
+    good = np.zeros((5, HUMANML3D.joints_num, 3), np.float32)
+    bad = np.full_like(good, np.nan)
+    out = tmp_path / "out"
+    jobs = [(good, out / "00_a.npy", "a", "humanml3d", None), (bad, out / "01_b.bvh", "b", "humanml3d", None)]
+    with pytest.raises(ValueError, match="not all finite"):
+        generate.write_all(jobs)
+    assert sorted(p.name for p in out.iterdir()) == []
+    assert generate.write_all([(good, tmp_path / "x.NPY", "x", "humanml3d", None)]) == [tmp_path / "x.NPY"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["out", "x.NPY"]
+    np.testing.assert_array_equal(np.load(tmp_path / "x.NPY"), good)
+
+
+def test_a_motion_that_is_not_finite_is_refused_naming_its_prompt_and_the_causes() -> None:
+    import numpy as np
+
+    request = generate.Request("mld", [Prompt("walk", 5, "--text 'walk'")], [Path("w.npy")],
+                               generate.GenerateOptions(guidance=1e30))
+    nan = np.full((5, HUMANML3D.joints_num, 3), np.nan)
+    with pytest.raises(ValueError, match=r"^--text 'walk': the model's motion is not finite \(NaN or infinity\): "
+                                         r"check --guidance 1e\+30; nothing written$"):
+        generate.check_finite(nan, request.prompts[0], request)
+    generate.check_finite(np.zeros_like(nan), request.prompts[0], request)
 
 
 def test_steps_of_a_family_generate_does_not_know_are_left_to_the_family() -> None:
@@ -174,6 +225,18 @@ def cases(tmp: Path, store: str, low: int, high: int) -> list[tuple[list[str], s
         ([*walks, "--out", f"{prompts}/"], f"--out {prompts}: exists and is not a directory"),
         ([*walks, "--out", str(tmp / "w.gif"), "sample.mld_guidance=abc"],
          "sample.mld_guidance: expected a number >= 0.0, got 'abc'"),
+        # after the cases above (test_bad_options_through_the_command picks some by position)
+        ([*walks, "--trajectory", "line", "--out", str(tmp / "w.gif")],
+         "--trajectory/--refine need a controlled model (motionlcm-control), not 'mld'"),
+        ([*walks, "--model", "motionlcm", "--refine", "--out", str(tmp / "w.gif")],
+         "--trajectory/--refine need a controlled model (motionlcm-control), not 'motionlcm'"),
+        ([*walks, "--model", "motionlcm-control", "--out", str(tmp / "w.gif")],
+         "--model motionlcm-control follows a trajectory: pass --trajectory (circle, line, zigzag or a .npy)"),
+        ([*walks, "--seed", "-1", "--out", str(tmp / "w.gif")],
+         "--seed -1: must be a whole number from 0 to 9223372036854775807 (prompt k samples with --seed + k)"),
+        ([*walks, "--text", "a person jumps", "--seed", str(2**63 - 1), "--out", str(tmp / "out")],
+         f"--seed {2**63 - 1}: must be a whole number from 0 to {2**63 - 2} (prompt k samples with --seed + k)"),
+        ([*walks, "--out", ""], "--out is empty: give a file (walk.gif) or a directory (out/)"),
     ]
 
 

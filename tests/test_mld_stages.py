@@ -224,6 +224,12 @@ def test_generate_command_writes_joints_and_animation(trained, tmp_path):
     gifs = generate.generate(trained, "mld", ["a person runs", "a person waves"], [40, 40], tmp_path / "m", steps=2)
     assert [p.name for p in gifs] == ["00_a_person_runs.gif", "01_a_person_waves.gif"]
     assert all(p.stat().st_size > 1000 for p in gifs)
+    # prompt k samples on its own with seed + k: the kick of the pair is the kick alone with seed 4
+    _, kick = generate.generate(trained, "mld", ["a person runs", "a person kicks"], [40, 44], tmp_path / "pair",
+                                seed=3, fmt="npy")
+    [alone] = generate.generate(trained, "mld", ["a person kicks"], [44], tmp_path / "alone.npy", seed=4)
+    np.testing.assert_array_equal(np.load(kick), np.load(alone))
+    assert not np.array_equal(np.load(alone), joints)  # seed 3 and seed 4 differ
     with pytest.raises(ValueError, match="unknown model family 'nope'"):
         generate.generate(trained, "nope", ["x"], [40], tmp_path / "x.npy")
 
@@ -308,6 +314,12 @@ def test_train_controlnet_resumes_exactly_and_follows_the_cli_trajectory(trained
                               trajectory="circle", refine=True)
     circle = make_trajectory("circle", 40)
     np.testing.assert_allclose(np.load(npy)[:, 0, [0, 2]], circle[:, [0, 2]], atol=1e-3)
+    # a shape spans each prompt's own length: the 40-frame line and the 48-frame line both end 1 m ahead
+    paths = generate.generate(params, "motionlcm-control", ["a person walks", "a person walks"], [40, 48],
+                              tmp_path / "lines", trajectory="line", size=1.0, refine=True, fmt="npy")
+    for path, frames in zip(paths, (40, 48), strict=True):
+        line = make_trajectory("line", frames, size=1.0)
+        np.testing.assert_allclose(np.load(path)[:, 0, [0, 2]], line[:, [0, 2]], atol=1e-3)
     path = tmp_path / "path.npy"
     np.save(path, np.zeros((30, 3), np.float32))
     with pytest.raises(ValueError, match="length mismatch"):

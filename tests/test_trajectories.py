@@ -96,11 +96,11 @@ def test_speed_limit():
 def test_load_trajectory_round_trip(tmp_path):
     path = make_trajectory("zigzag", 40).astype(np.float64)
     np.save(tmp_path / "zig.npy", path)
-    loaded = load_trajectory(tmp_path / "zig.npy", 40)
+    loaded = load_trajectory(tmp_path / "zig.npy", 40, 20.0)
     assert loaded.dtype == np.float32 and loaded.shape == (40, 3)
     np.testing.assert_allclose(loaded, path, atol=1e-6)
     np.save(tmp_path / "ints.npy", np.zeros((5, 3), dtype=np.int64))
-    assert load_trajectory(str(tmp_path / "ints.npy"), 5).dtype == np.float32
+    assert load_trajectory(str(tmp_path / "ints.npy"), 5, 20.0).dtype == np.float32
 
 
 @pytest.mark.parametrize(
@@ -113,7 +113,10 @@ def test_load_trajectory_round_trip(tmp_path):
         (np.zeros((40, 3), dtype=bool), "expected real numbers"),
         (np.where(np.arange(40)[:, None] == 7, np.nan, 0.0) * np.ones(3), r"in 1 of 40 frames \(first: frame 7"),
         (np.full((40, 3), np.inf), "NaN or inf"),
-        (np.zeros((30, 3)), "length mismatch: the file has 30 frames, --length is 40"),
+        (np.zeros((30, 3)), "length mismatch: the file has 30 frames, the motion 40"),
+        # a 3 m line in millimetres: 3000 "m" over 39 frame steps at 20 fps
+        (np.linspace([0, 900, 0], [0, 900, 3000], 40),
+         r"moves at 1\.54e\+03 m/s on average at 20 fps, faster than 10\.0 m/s: the positions must be in metres"),
         (np.array([{"x": 1}, None], dtype=object), "not a loadable .npy array"),
     ],
 )
@@ -121,17 +124,17 @@ def test_load_trajectory_errors_name_the_file(tmp_path, array, match):
     file = tmp_path / "bad.npy"
     np.save(file, array, allow_pickle=True)
     with pytest.raises(ValueError, match=match) as err:
-        load_trajectory(file, 40)
+        load_trajectory(file, 40, 20.0)
     assert str(file) in str(err.value)
 
 
 def test_load_trajectory_other_files(tmp_path):
     with pytest.raises(FileNotFoundError, match="missing.npy"):
-        load_trajectory(tmp_path / "missing.npy", 40)
+        load_trajectory(tmp_path / "missing.npy", 40, 20.0)
     (tmp_path / "text.npy").write_text("not an array")
     with pytest.raises(ValueError, match="text.npy is not a .npy file") as err:  # not numpy's pickle advice
-        load_trajectory(tmp_path / "text.npy", 40)
+        load_trajectory(tmp_path / "text.npy", 40, 20.0)
     assert "pickle" not in str(err.value)
     np.savez(tmp_path / "both.npz", a=np.zeros((40, 3)))
     with pytest.raises(ValueError, match="both.npz is an .npz archive"):
-        load_trajectory(tmp_path / "both.npz", 40)
+        load_trajectory(tmp_path / "both.npz", 40, 20.0)
