@@ -7,7 +7,8 @@ rewrites two marked regions of the README:
   and notes verbatim, its headings as bold lines) under one line saying when and on which machine;
 - ``<!-- stage-times:begin -->`` … ``<!-- stage-times:end -->``: the wall time of every training run,
   the ``wall_time_s`` that each training stage's output records in its ``metrics.json`` (stages
-  found from ``dvc.yaml``'s outs; stages that record no time are not listed).
+  found from ``dvc.yaml``'s outs; stages that record no time are not listed). When the times are
+  those the region already lists, it is left as it is, with the date and machine of the runs.
 
 The machine line comes from ``benchmarks/machine.py`` (CPU model, fp32 matmul GFLOP/s), run by this
 command unless ``--machine`` gives the JSON it wrote (``python benchmarks/machine.py --json F``): run
@@ -115,6 +116,13 @@ def stage_times_block(times: list[tuple[str, str, float]], machine: str) -> str:
     return "\n".join(lines) + "\n"
 
 
+def same_times(old: str, new: str) -> bool:
+    """Whether two stage-times regions list the same runs and times: then the old one, with the date and
+    machine of the runs that trained the models, stays (only the evaluation ran again)."""
+    return [line for line in old.splitlines() if line.startswith("|")] == \
+        [line for line in new.splitlines() if line.startswith("|")]
+
+
 def table_structure(text: str) -> list[tuple[str, list[str]]]:
     """Each markdown table in ``text`` as (header line, row names); the ``(†K)`` mark of a row name is
     dropped (K depends on the profile)."""
@@ -192,8 +200,9 @@ def main(argv: Sequence[str] | None = None) -> None:
         machine = machine_line(bench, args.date)
         dvc_stages = yaml.safe_load((REPO_ROOT / "dvc.yaml").read_text())["stages"]
         text = replace_region(readme, RESULTS, results_block(report_md, machine), str(args.readme))
-        text = replace_region(text, STAGE_TIMES, stage_times_block(training_times(args.artifacts, dvc_stages),
-                                                                   machine), str(args.readme))
+        times = stage_times_block(training_times(args.artifacts, dvc_stages), machine)
+        if not same_times(region(text, STAGE_TIMES, str(args.readme)), times):
+            text = replace_region(text, STAGE_TIMES, times, str(args.readme))
     except (ValueError, FileNotFoundError) as err:
         sys.exit(f"{COMMAND}: {err}")
     tmp = args.readme.with_name(f".{args.readme.name}.tmp")

@@ -28,11 +28,13 @@ PARAMS = ("paths.artifacts",)
 SOURCES = ("real", *FAMILIES)
 SPEED = "speed"  # stages/speed.py's folder
 
-#: The figures ``summary.json`` keeps, ``(row, metric)``: the evaluator's R-precision on real motions and
-#: the FID of each family's headline row. Few enough for one line of ``dvc metrics show`` and
-#: ``dvc exp show``; the whole table is ``metrics.json``.
+#: The figures ``summary.json`` keeps, ``(row, metric)``: the evaluator's R-precision on real motions,
+#: the FID of each text family's headline row, and the action family's accuracy and FID (in the action
+#: recogniser's features). Few enough for one line of ``dvc metrics show`` and ``dvc exp show``; the
+#: whole table is ``metrics.json``.
 SUMMARY = (("Real", "R_precision_top3"), ("VAE", "FID"), ("MLD-DDIM50", "FID"), ("MotionLCM-1", "FID"),
-           ("MotionLCM-Control", "FID"), ("EMDM-10", "FID"), ("MotionDiffuse-DDIM10", "FID"))
+           ("MotionLCM-Control", "FID"), ("EMDM-10", "FID"), ("MotionDiffuse-DDIM10", "FID"),
+           ("EMDM-action", "Accuracy"), ("EMDM-action", "FID"))
 
 
 def _read_json(path: Path) -> Any:

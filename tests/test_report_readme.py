@@ -149,6 +149,16 @@ def test_command_rewrites_both_regions_and_check_passes(tmp_path: Path) -> None:
     main([*args, "--machine", str(bench), "--date", "2026-12-01"])
     assert readme.read_text(encoding="utf-8") == text  # same inputs, same README
     main([*args, "--check"])
+    # only the evaluation ran again, on another day: the stage times keep the day the models trained
+    main([*args, "--machine", str(bench), "--date", "2026-12-09"])
+    again = readme.read_text(encoding="utf-8")
+    assert "2026-12-09" in region(again, RESULTS, "README")
+    assert region(again, STAGE_TIMES, "README") == region(text, STAGE_TIMES, "README")
+    metrics = artifacts / "train_vae" / "metrics.json"  # a model trained again: its time and the day change
+    metrics.write_text(json.dumps({**json.loads(metrics.read_text()), "wall_time_s": 600.0}))
+    main([*args, "--machine", str(bench), "--date", "2026-12-10"])
+    times = region(readme.read_text(encoding="utf-8"), STAGE_TIMES, "README")
+    assert "2026-12-10" in times and "| train_vae | train_vae | 10 min 00 s |" in times
 
 
 def test_check_exits_1_with_one_line_on_a_stale_readme(tmp_path: Path) -> None:
