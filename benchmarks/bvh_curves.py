@@ -2,14 +2,14 @@
 
     python benchmarks/bvh_curves.py [--clips 30] [--root artifacts/dataset]
 
-For every ``--clips``-th-spaced clip of ``<root>/new_joints`` (HumanML3D layout), the rotations that
-:func:`data.bvh.write_bvh` solves are written as Euler curves (made continuous by
-:func:`data.bvh.continuous_euler`) twice: with ``Z X Y`` on every joint, and with the orders of
-:func:`data.bvh.rotation_orders`. Between two frames a joint turns by an angle; its three curves move
-by a sum of absolute changes. Near gimbal lock the curves move far more than the joint turns (two
-angles trade large opposite changes), which an animator sees as spikes. Prints per clip and over all
-clips: the largest curve move beyond 3 x the joint's turn (degrees), the largest single curve step,
-the largest turn, and how many joints left Z X Y.
+For ``--clips`` clips spread over ``<root>/new_joints`` (HumanML3D layout), the rotations that
+:func:`data.bvh.write_bvh` solves are turned into its Euler curves (:func:`data.bvh.euler_curves`)
+twice: with ``Z X Y`` on every joint, and with the orders of :func:`data.bvh.rotation_orders`.
+Between two frames a joint turns by an angle; its three curves move by a sum of absolute changes.
+Near gimbal lock the curves move far more than the joint turns (two angles trade large opposite
+changes), which an animator sees as spikes. Prints per clip and over all clips: the largest curve
+move beyond 3 x the joint's turn (degrees), the largest single curve step, the largest turn, and how
+many joints left Z X Y.
 """
 
 from __future__ import annotations
@@ -23,13 +23,8 @@ from scipy.spatial.transform import Rotation
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from data.bvh import _euler, bvh_nodes, continuous_euler, rotation_orders, solve_rotations  # noqa: E402
+from data.bvh import bvh_nodes, euler_curves, rotation_orders, solve_rotations  # noqa: E402
 from data.skeleton import HUMANML3D  # noqa: E402
-
-
-def curves(local: np.ndarray, orders: list[str]) -> np.ndarray:
-    """(T, N, 3) continuous Euler curves of local rotations (T, N, 3, 3), each node in its order."""
-    return continuous_euler(np.stack([_euler(local[:, n], order) for n, order in enumerate(orders)], axis=1))
 
 
 def excess(angles: np.ndarray, turned: np.ndarray) -> float:
@@ -52,7 +47,7 @@ def main() -> None:
         relative = np.swapaxes(local[:-1], -1, -2) @ local[1:]
         turned = np.degrees(Rotation.from_matrix(relative.reshape(-1, 3, 3)).magnitude()).reshape(len(relative), -1)
         orders = rotation_orders(local)
-        zxy, own = curves(local, ["ZXY"] * len(nodes)), curves(local, orders)
+        zxy, own = euler_curves(local, ["ZXY"] * len(nodes)), euler_curves(local, orders)
         row = (excess(zxy, turned), excess(own, turned), np.abs(np.diff(zxy, axis=0)).max(),
                np.abs(np.diff(own, axis=0)).max(), turned.max(), sum(o != "ZXY" for o in orders))
         rows.append(row)

@@ -152,6 +152,12 @@ def _euler(local: np.ndarray, order: str) -> np.ndarray:
         return Rotation.from_matrix(local).as_euler(order, degrees=True)
 
 
+def euler_curves(local: np.ndarray, orders: Sequence[str]) -> np.ndarray:
+    """(T, N, 3) the BVH's angle curves (degrees): local rotations (T, N, 3, 3), node ``n`` in ``orders[n]``,
+    made continuous (:func:`continuous_euler`)."""
+    return continuous_euler(np.stack([_euler(local[:, n], order) for n, order in enumerate(orders)], axis=1))
+
+
 def rotation_orders(local: np.ndarray) -> list[str]:
     """Each node's rotation channel order for its local rotations ``local`` (T, N, 3, 3).
 
@@ -234,7 +240,7 @@ def write_bvh(joints: np.ndarray, skeleton: Skeleton, path: Path | str, fps: flo
     nodes = bvh_nodes(skeleton)
     local = solve_rotations(joints, skeleton, nodes)
     orders = rotation_orders(local)
-    angles = continuous_euler(np.stack([_euler(local[:, n], order) for n, order in enumerate(orders)], axis=1))
+    angles = euler_curves(local, orders)
     values = np.concatenate([joints[:, 0], angles.reshape(len(joints), -1)], axis=1)
     lines = _hierarchy_lines(nodes, orders)
     lines += ["MOTION", f"Frames: {len(joints)}", f"Frame Time: {1.0 / fps:.8f}"]

@@ -773,23 +773,27 @@ def read_splits(
     and a split without any item is a problem of its split file. In fail mode one DatasetError
     lists every problem of every split; in skip mode a shared id is read only in its first split
     and its problem is listed in the split's ``skipped``. A split without any item is an error in
-    both modes: the stages after it need every split.
+    both modes (the stages after it need every split), listing every split's problems.
     """
     root = Path(root)
     shared = shared_ids(root, splits)
     result: dict[str, SplitData] = {}
-    problems: list[Problem] = []
+    by_split: list[list[Problem]] = []  # each split's problems, in order, for the error
+    failed = False
     for split in splits:
         try:
             data = read_split(root, split, skeleton, exclude=shared.get(split), **options)  # type: ignore[arg-type]
         except DatasetError as exc:
-            problems += exc.problems
+            by_split.append(exc.problems)
+            failed = True
             continue
-        if not data.items:
-            problems += [*data.skipped, _empty_split_problem(root, data)]
+        empty = [] if data.items else [_empty_split_problem(root, data)]
+        by_split.append([*data.skipped, *empty])  # in skip mode the other splits' skipped clips are listed too
+        failed = failed or bool(empty)
         result[split] = data
-    if problems:
-        raise DatasetError(list(dict.fromkeys(problems)), f"splits {list(splits)} of {root}")
+    if failed:
+        raise DatasetError(list(dict.fromkeys(p for problems in by_split for p in problems)),
+                           f"splits {list(splits)} of {root}")
     return result
 
 

@@ -201,14 +201,17 @@ def main(argv: Sequence[str] | None = None) -> None:
         dvc_stages = yaml.safe_load((REPO_ROOT / "dvc.yaml").read_text())["stages"]
         text = replace_region(readme, RESULTS, results_block(report_md, machine), str(args.readme))
         times = stage_times_block(training_times(args.artifacts, dvc_stages), machine)
+        rewritten = [RESULTS]
         if not same_times(region(text, STAGE_TIMES, str(args.readme)), times):
             text = replace_region(text, STAGE_TIMES, times, str(args.readme))
+            rewritten.append(STAGE_TIMES)
     except (ValueError, FileNotFoundError) as err:
         sys.exit(f"{COMMAND}: {err}")
     tmp = args.readme.with_name(f".{args.readme.name}.tmp")
     tmp.write_text(text, encoding="utf-8")
     os.replace(tmp, args.readme)
-    print(f"{args.readme}: regions {RESULTS} and {STAGE_TIMES} rewritten")
+    kept = "" if STAGE_TIMES in rewritten else f"; {STAGE_TIMES} kept (the training times are unchanged)"
+    print(f"{args.readme}: {' and '.join(rewritten)} rewritten{kept}")
 
 
 if __name__ == "__main__":

@@ -39,7 +39,7 @@ from tqdm import tqdm
 
 from data.atomic import atomic_directory, check_output
 from data.features import check_stats, features_from_joints, grouped_mean_std
-from data.humanml3d import SPLITS, DatasetError, Problem, SplitData, read_splits
+from data.humanml3d import SPLITS, DatasetError, MotionItem, Problem, SplitData, read_splits
 from data.paraphrase_set import read_paraphrases
 from data.skeleton import Skeleton, get_skeleton
 from data.store import StoredItem, write_split
@@ -92,6 +92,17 @@ def compute_clip_features(
                 bar.update()
     bar.close()
     return results
+
+
+def paraphrase_problems(root: Path, test_items: Sequence[MotionItem], fps: float) -> list[Problem]:
+    """The problems of the held-out paraphrase set (:func:`data.paraphrase_set.read_paraphrases`), an error in
+    both modes: checked here so that a bad paraphrase file stops the pipeline before training, not at the
+    evaluation that reads it."""
+    try:
+        read_paraphrases(root, test_items, fps)
+    except DatasetError as err:
+        return err.problems
+    return []
 
 
 def clip_features(
@@ -220,11 +231,11 @@ def run(params: dict[str, Any]) -> Path:
     split_of = {clip_id: split for split, data in splits.items() for clip_id in data.clips}
     skipped = [(split, p) for split, data in splits.items() for p in data.skipped]
     skipped += [(split_of[p.clip_id], p) for p in failed]
-    if skipped and data_cfg["on_error"] == "fail":
-        raise DatasetError([p for _, p in skipped], f"splits {list(SPLITS)} of {root}")
-    # checked here, in both modes, so that a bad paraphrase set stops the pipeline before training, not at the
-    # evaluation that reads it
-    read_paraphrases(root, [item for item in splits["test"].items if item.clip_id in feats], skeleton.fps)
+    failing = [p for _, p in skipped] if data_cfg["on_error"] == "fail" else []
+    failing += paraphrase_problems(root, [item for item in splits["test"].items if item.clip_id in feats],
+                                   skeleton.fps)
+    if failing:
+        raise DatasetError(failing, f"splits {list(SPLITS)} of {root}")
     train_clips = {item.clip_id for item in splits["train"].items if item.clip_id in feats}
     if not train_clips:
         raise DatasetError([Problem(str(root / "train.txt"), "no usable training motion")])

@@ -97,8 +97,9 @@ FORMATS = ("gif", "mp4", "png", "npy", "bvh")
 DEFAULT_FORMAT = "gif"
 #: Suffixes of the formats drawn with matplotlib (seconds per motion; written in parallel).
 DRAWN = (".gif", ".mp4", ".png")
-#: Seeds torch takes: prompt k samples with ``--seed + k``.
-MAX_SEED = 2**63 - 1
+#: The largest seed torch's generators take (prompt k samples with ``--seed + k``); negative seeds, which
+#: torch maps onto large ones, are refused.
+MAX_SEED = 2**64 - 1
 #: The longest file name most file systems take, in bytes.
 NAME_MAX = 255
 #: Network evaluations per motion from which the command says that sampling takes a while.
@@ -532,6 +533,7 @@ def write_all(jobs: Sequence[tuple[np.ndarray, Path, str, str, np.ndarray | None
         folder.mkdir(parents=True, exist_ok=True)
     partial = [(joints, partial_path(path), *rest) for joints, path, *rest in jobs]
     workers = min(len(jobs), len(os.sched_getaffinity(0)))
+    published: list[Path] = []
     try:
         if workers < 2 or not any(path.suffix.lower() in DRAWN for path in paths):
             for job in partial:
@@ -541,9 +543,14 @@ def write_all(jobs: Sequence[tuple[np.ndarray, Path, str, str, np.ndarray | None
                 list(pool.map(_write_job, partial))
         for job, path in zip(partial, paths, strict=True):
             os.replace(job[1], path)
-    except OSError as err:
-        final = dict(zip([str(job[1]) for job in partial], map(str, paths), strict=True))
-        raise OSError(f"cannot write {final.get(str(err.filename), 'the outputs')}: {err.strerror or err}") from err
+            published.append(path)
+    except (OSError, ValueError) as err:
+        for path in published:  # a rename that failed takes back the ones before it
+            path.unlink(missing_ok=True)
+        message = str(err)
+        for job, path in zip(partial, paths, strict=True):  # name the file asked for, not its temporary name
+            message = message.replace(str(job[1]), str(path))
+        raise type(err)(f"cannot write: {message}") from err
     finally:
         for job in partial:
             job[1].unlink(missing_ok=True)

@@ -138,20 +138,24 @@ def _degenerate_copy(dataset: Path, tmp_path: Path) -> Path:
 
 
 def test_fail_mode_lists_reading_and_extraction_problems_in_one_run(dataset, tmp_path, monkeypatch):
-    """A truncated file (found reading) and a degenerate pose (found computing features) in one error."""
+    """A truncated file (found reading), a degenerate pose (found computing features) and a missing
+    paraphrase file (test clip 0008's; 0007 is left out with its features) in one error."""
     root = _degenerate_copy(dataset, tmp_path)
     bad = root / "new_joints" / "0002.npy"
     bad.write_bytes(bad.read_bytes()[:200])
+    (root / "paraphrases").mkdir()
+    (root / "paraphrases" / "0007.txt").write_text("somebody strolls#somebody/NOUN stroll/VERB#0.0#0.0\n")
     params = _params(root, tmp_path / "features")
     monkeypatch.setattr("pipelines.cli.load_params", lambda argv: params)
     with pytest.raises(SystemExit) as exc:
         main([])
     lines = str(exc.value).splitlines()
     assert lines[:2] == ["extract_features: bad input, nothing written.",
-                         f"2 problem(s) in splits ['train', 'val', 'test'] of {root}:"]
+                         f"3 problem(s) in splits ['train', 'val', 'test'] of {root}:"]
     assert lines[2].startswith(f"  - {root}/new_joints/0002.npy: unreadable or corrupt .npy")
     assert lines[3].startswith(f"  - {root}/new_joints/0007.npy: feature extraction failed: ")
-    assert len(lines) == 4
+    assert lines[4].startswith(f"  - {root}/paraphrases/0008.txt: ")
+    assert len(lines) == 5
     assert not (tmp_path / "features").exists()
 
 
@@ -169,9 +173,24 @@ def test_a_bad_paraphrase_set_stops_the_stage_before_anything_is_written(dataset
         main([])
     lines = str(exc.value).splitlines()
     assert lines[:2] == ["extract_features: bad input, nothing written.",
-                         f"2 problem(s) in the paraphrase set {root}/paraphrases:"]
+                         f"2 problem(s) in splits ['train', 'val', 'test'] of {root}:"]
     assert lines[2].startswith(f"  - {root}/paraphrases/0008.txt:1: bad caption line: ")
     assert lines[3:] == [f"  - {root}/paraphrases/0008.txt: no paraphrase of item 0008"]
+    assert not (tmp_path / "features").exists()
+
+
+def test_fail_mode_lists_the_other_splits_problems_with_an_emptied_split(dataset, tmp_path, monkeypatch):
+    """A bad train clip and val's only clip truncated (val left empty): one run lists both (the emptied split
+    once hid the other splits' problems)."""
+    root = _corrupt_copy(dataset, tmp_path)  # train's 0002.npy truncated
+    val = root / "new_joints" / "0006.npy"
+    val.write_bytes(val.read_bytes()[:200])
+    params = _params(root, tmp_path / "features")
+    monkeypatch.setattr("pipelines.cli.load_params", lambda argv: params)
+    with pytest.raises(SystemExit) as exc:
+        main([])
+    listed = [line.split(": ")[0] for line in str(exc.value).splitlines()[2:]]
+    assert listed == [f"  - {root}/new_joints/0002.npy", f"  - {root}/new_joints/0006.npy", f"  - {root}/val.txt"]
     assert not (tmp_path / "features").exists()
 
 

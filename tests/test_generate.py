@@ -122,9 +122,14 @@ def test_outputs_appear_together_or_not_at_all(tmp_path: Path) -> None:
     bad = np.full_like(good, np.nan)
     out = tmp_path / "out"
     jobs = [(good, out / "00_a.npy", "a", "humanml3d", None), (bad, out / "01_b.bvh", "b", "humanml3d", None)]
-    with pytest.raises(ValueError, match="not all finite"):
-        generate.write_all(jobs)
+    with pytest.raises(ValueError, match=rf"^cannot write: {out / '01_b.bvh'}: the joint positions are not all"):
+        generate.write_all(jobs)  # the error names the file asked for, not its temporary name
     assert sorted(p.name for p in out.iterdir()) == []
+    (out / "01_b.npy").mkdir()  # taken after the checks: the second rename fails, the first is taken back
+    jobs[1] = (good, out / "01_b.npy", "b", "humanml3d", None)
+    with pytest.raises(OSError, match=rf"^cannot write: .*Is a directory: '{out / '01_b.npy'}'"):
+        generate.write_all(jobs)
+    assert sorted(p.name for p in out.iterdir()) == ["01_b.npy"]
     assert generate.write_all([(good, tmp_path / "x.NPY", "x", "humanml3d", None)]) == [tmp_path / "x.NPY"]
     assert sorted(p.name for p in tmp_path.iterdir()) == ["out", "x.NPY"]
     np.testing.assert_array_equal(np.load(tmp_path / "x.NPY"), good)
@@ -233,9 +238,9 @@ def cases(tmp: Path, store: str, low: int, high: int) -> list[tuple[list[str], s
         ([*walks, "--model", "motionlcm-control", "--out", str(tmp / "w.gif")],
          "--model motionlcm-control follows a trajectory: pass --trajectory (circle, line, zigzag or a .npy)"),
         ([*walks, "--seed", "-1", "--out", str(tmp / "w.gif")],
-         "--seed -1: must be a whole number from 0 to 9223372036854775807 (prompt k samples with --seed + k)"),
-        ([*walks, "--text", "a person jumps", "--seed", str(2**63 - 1), "--out", str(tmp / "out")],
-         f"--seed {2**63 - 1}: must be a whole number from 0 to {2**63 - 2} (prompt k samples with --seed + k)"),
+         f"--seed -1: must be a whole number from 0 to {2**64 - 1} (prompt k samples with --seed + k)"),
+        ([*walks, "--text", "a person jumps", "--seed", str(2**64 - 1), "--out", str(tmp / "out")],
+         f"--seed {2**64 - 1}: must be a whole number from 0 to {2**64 - 2} (prompt k samples with --seed + k)"),
         ([*walks, "--out", ""], "--out is empty: give a file (walk.gif) or a directory (out/)"),
     ]
 
