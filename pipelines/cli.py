@@ -31,6 +31,7 @@ from pipelines.config import (
     check_choice,
     check_number,
     check_type,
+    every_problem,
     group_choices,
     load_params,
     restrict_params,
@@ -167,13 +168,15 @@ def check_shared(params: dict[str, Any], keys: Sequence[str]) -> list[str]:
 
 
 def check_params(params: dict[str, Any], keys: Sequence[str], checks: Sequence[Check]) -> list[str]:
-    """Every problem of a stage's params, one line each: the shared sections', then each check's first."""
+    """Every problem of a stage's params, one line each: the shared sections', then each check's
+    (:func:`pipelines.config.every_problem`: all its bad values, up to one that stops it)."""
     errors = check_shared(params, keys)
     for check in checks:
         try:
-            check(params)
+            with every_problem():
+                check(params)
         except ValueError as err:
-            errors.append(str(err))
+            errors += str(err).splitlines()
     return errors
 
 

@@ -25,7 +25,9 @@ import re
 import sys
 import types
 import typing
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterator, Mapping, Sequence
+from contextlib import contextmanager
+from contextvars import ContextVar
 from pathlib import Path
 from typing import Any
 
@@ -80,6 +82,46 @@ def parse_value(raw: str) -> Any:
         raise ConfigError(f"value {raw!r} is not valid YAML ({reason})") from err
 
 
+#: The problems noted by the value checks inside :func:`every_problem` (None outside it: they raise).
+_NOTED: ContextVar[list[str] | None] = ContextVar("noted_config_problems", default=None)
+
+
+def refuse(message: str) -> None:
+    """A bad value: a ConfigError with ``message``, or inside :func:`every_problem` a note, the check going on."""
+    noted = _NOTED.get()
+    if noted is None:
+        raise ConfigError(message)
+    noted.append(message)
+
+
+@contextmanager
+def every_problem() -> Iterator[None]:
+    """Run a section's checks to their end and raise one ConfigError listing every bad value, one per line.
+
+    The value checks (:func:`check_number`, :func:`check_choice`, :func:`check_type`, :func:`check_heads`,
+    :func:`check_fields`) note a bad value and return it instead of raising. A ConfigError raised inside
+    (a section that is not a mapping, an unknown key) ends the checks and joins the list; another
+    exception after a noted value (code that used the bad value) ends them, the list standing for it.
+    Each key is listed once, by the first check that refused it.
+    """
+    noted: list[str] = []
+    token = _NOTED.set(noted)
+    try:
+        yield
+    except ConfigError as err:
+        noted.append(str(err))
+    except Exception:
+        if not noted:
+            raise
+    finally:
+        _NOTED.reset(token)
+    if noted:
+        first = {}  # one line per key: the first check that refused it (a later one would repeat it)
+        for message in noted:
+            first.setdefault(message.split(": ", 1)[0], message)
+        raise ConfigError("\n".join(first.values()))
+
+
 def dotted(where: str, key: str) -> str:
     """``where.key`` (just ``key`` at the top level, ``where`` empty)."""
     return f"{where}.{key}" if where else key
@@ -96,8 +138,7 @@ def check_number(cfg: Mapping[str, Any], key: str, where: str, *, low: float, hi
             or (high is not None and value > high) or (high_open and value == high)):
         upper = "" if high is None else f" and {'<' if high_open else '<='} {high}"
         kind = "an integer" if integer else "a number"
-        raise ConfigError(f"{dotted(where, key)}: expected {kind} {'>' if low_open else '>='} {low}{upper}, "
-                          f"got {value!r}")
+        refuse(f"{dotted(where, key)}: expected {kind} {'>' if low_open else '>='} {low}{upper}, got {value!r}")
     return value
 
 
@@ -105,7 +146,7 @@ def check_choice(cfg: Mapping[str, Any], key: str, where: str, *, choices: Seque
     """``cfg[key]`` checked to be one of ``choices``; a ConfigError naming the key, the value and the choices."""
     value = cfg[key]
     if not any(value == choice and type(value) is type(choice) for choice in choices):
-        raise ConfigError(f"{dotted(where, key)}: expected one of {list(choices)}, got {value!r}")
+        refuse(f"{dotted(where, key)}: expected one of {list(choices)}, got {value!r}")
     return value
 
 
@@ -114,7 +155,7 @@ def check_heads(cfg: Mapping[str, Any], key: str, where: str, *, width: int) -> 
     ``width``; a ConfigError naming ``<where>.<key>`` otherwise (torch would assert when the network is built)."""
     heads = int(check_number(cfg, key, where, low=1, integer=True))
     if width % heads:
-        raise ConfigError(f"{dotted(where, key)}: width {width} must be divisible by {key} {heads}")
+        refuse(f"{dotted(where, key)}: width {width} must be divisible by {key} {heads}")
 
 
 def check_type(cfg: Mapping[str, Any], key: str, where: str, *, kind: type, nullable: bool = False) -> Any:
@@ -123,7 +164,7 @@ def check_type(cfg: Mapping[str, Any], key: str, where: str, *, kind: type, null
     if not (isinstance(value, kind) or (nullable and value is None)):
         names = {str: "a string", bool: "true or false", dict: "a mapping", list: "a list"}
         allowed = names.get(kind, kind.__name__) + (" or null" if nullable else "")
-        raise ConfigError(f"{dotted(where, key)}: expected {allowed}, got {value!r}")
+        refuse(f"{dotted(where, key)}: expected {allowed}, got {value!r}")
     return value
 
 
@@ -184,9 +225,9 @@ def check_fields(cfg: Any, cls: type, where: str, *, exclude: Sequence[str] = ()
     known = [f.name for f in dataclasses.fields(cls) if f.name not in exclude]
     for key, value in cfg.items():
         if key not in known:
-            raise ConfigError(f"{dotted(where, key)}: unknown key; {where} holds {known}")
-        if not _allows(hints[key], value):
-            raise ConfigError(f"{dotted(where, key)}: expected {_describe(hints[key])}, got {value!r}")
+            refuse(f"{dotted(where, key)}: unknown key; {where} holds {known}")
+        elif not _allows(hints[key], value):
+            refuse(f"{dotted(where, key)}: expected {_describe(hints[key])}, got {value!r}")
     return cfg
 
 

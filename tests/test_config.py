@@ -19,7 +19,10 @@ from pipelines.config import (
     REPO_ROOT,
     ConfigError,
     apply_overrides,
+    check_choice,
+    check_number,
     compose_params,
+    every_problem,
     load_params,
     main,
     parse_value,
@@ -209,6 +212,39 @@ def test_errors_of_several_keys_are_one_line_each():
         "train_vae.loop.seed: expected int, got 'x'",
         "train_vae.lr: expected a number > 0.0, got 'abc'",
     ]
+
+
+def test_every_bad_value_of_a_stages_own_section_is_listed():
+    """A stage's own section is checked to its end: each bad value one line, in the order it is checked;
+    a value the later checks cannot use (heads "x") ends the list there, without a second, derived error."""
+    params = restrict_params(load_params(["train_vae.kl_weight=-1", "train_vae.heading_weight=-1",
+                                          "train_vae.joint_beta=0", "train_vae.joint_space=local"]),
+                             train_vae.STAGE.params)
+    assert check_params(params, train_vae.STAGE.params, checks(train_vae.STAGE)) == [
+        "train_vae.kl_weight: expected a number >= 0.0, got -1",
+        "train_vae.heading_weight: expected a number >= 0.0, got -1",
+        "train_vae.joint_beta: expected a number > 0.0, got 0",
+        "train_vae.joint_space: expected one of ['global', 'root'], got 'local'",
+    ]
+    params = restrict_params(load_params(["train_vae.lr=0", "train_vae.model.heads=x"]), train_vae.STAGE.params)
+    assert check_params(params, train_vae.STAGE.params, checks(train_vae.STAGE)) == [
+        "train_vae.lr: expected a number > 0.0, got 0",
+        "train_vae.model.heads: expected an integer, got 'x'",  # once, by the first check that refused it
+    ]
+
+
+def test_outside_every_problem_a_check_raises_at_the_first_bad_value():
+    """The sweeps and the stages' own code call the checks directly: the first bad value raises."""
+    with pytest.raises(ConfigError, match=r"^s\.a: expected a number >= 0, got -1$"):
+        check_number({"a": -1, "b": -1}, "a", "s", low=0)
+    listed = r"^s\.a: expected a number >= 0, got -1\ns\.b: expected one of \[1\], got 2$"
+    with pytest.raises(ConfigError, match=listed):
+        with every_problem():
+            check_number({"a": -1}, "a", "s", low=0)
+            check_choice({"b": 2}, "b", "s", choices=[1])
+            raise ZeroDivisionError  # code that used the bad value: the list stands for it
+    with pytest.raises(ZeroDivisionError), every_problem():  # nothing noted: the error is the code's own
+        raise ZeroDivisionError
 
 
 @pytest.mark.parametrize("override", ["train_vae.lr=.nan", "train_vae.lr=.inf", "train_vae.kl_weight=.inf"])
