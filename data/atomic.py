@@ -56,6 +56,9 @@ def _refusal(final: Path, owner: str) -> str | None:
     if final.is_symlink():
         return "it is a symbolic link"
     if not final.exists():
+        above = next((parent for parent in final.parents if parent.exists()), None)
+        if above is not None and not above.is_dir():
+            return f"{above} is a file, not a directory"
         return None
     if not final.is_dir():
         return "it is a file" if final.is_file() else "it exists and is not a directory"

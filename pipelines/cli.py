@@ -256,5 +256,5 @@ def run_main(name: str, run: Callable[[dict[str, Any]], Any], keys: Sequence[str
             sys.exit("\n".join(f"{name}: {error}" for error in errors))
         if CFG_FLAG not in options:
             run(params)
-    except (ValueError, FileNotFoundError) as err:
+    except (ValueError, OSError) as err:  # bad params, missing or unwritable files: one line, no traceback
         sys.exit(f"{name}: {err}")

@@ -54,10 +54,12 @@ with no ``_ci`` when R' = 1, and its table row records ``eval_replications``.
 from __future__ import annotations
 
 import time
+import zipfile
 import zlib
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
@@ -73,6 +75,7 @@ from models import metrics as M
 from models.evaluator import EvaluatorConfig, T2MEvaluator
 from models.generator import ControlledGenerator, ControlSpec, Generator, Hint, Reconstructor, TextBatch
 from pipelines.checkpoint import load_final_model
+from pipelines.config import check_number, refuse
 
 REAL = "Real"
 #: Suffix of a row answering the held-out paraphrases (``evaluate.paraphrase_rows``).
@@ -96,6 +99,23 @@ class EvalConfig:
     unit_length: int = 4
     seed: int = 0
     paraphrase_rows: Sequence[str] = ()
+
+
+def check_protocol(cfg: Mapping[str, Any]) -> None:
+    """The numbers of the ``evaluate`` section (:class:`EvalConfig`) checked before any work, each refusal one
+    line naming the key (:func:`pipelines.config.refuse`): counts that the protocol divides by or draws
+    from are at least 1, and MultiModality draws ``mm_times`` pairs from ``mm_repeats`` samples (0: none)."""
+    for key in ("replications", "group_size", "unit_length", "diversity_times", "mm_texts", "mm_times",
+                "timing_sentences"):
+        check_number(cfg, key, "evaluate", low=1, integer=True)
+    for key in ("mm_repeats", "seed"):
+        check_number(cfg, key, "evaluate", low=0, integer=True)
+    repeats, times = cfg["mm_repeats"], cfg["mm_times"]
+    if isinstance(repeats, int) and isinstance(times, int) and 0 < repeats <= times:
+        refuse(f"evaluate.mm_repeats: expected 0 (no MultiModality) or more than evaluate.mm_times ({times}), "
+               f"got {repeats}")
+    if cfg.get("timing_seconds") is not None:
+        check_number(cfg, "timing_seconds", "evaluate", low=0.0, low_open=True)
 
 
 def build_evaluator(config: EvaluatorConfig, mean: Sequence[float], std: Sequence[float],
@@ -254,10 +274,16 @@ def control_hint(d: Draw, spec: ControlSpec, cfg: EvalConfig, r: int, joints_num
 
 def sample_rows(gen: Generator, text: TextBatch, lengths: np.ndarray, seed: int, hint: Hint | None,
                 index: np.ndarray | list[int]) -> np.ndarray:
-    """``gen`` on the rows ``index`` of a batch (with their hints for a controlled generator)."""
+    """``gen`` on the rows ``index`` of a batch (with their hints for a controlled generator); ValueError naming
+    the row when its motions are not finite (they would fail far from the cause, in the FID's matrix root)."""
     if hint is None:
-        return gen.sample(text.select(index), lengths[index], seed=seed)
-    return gen.sample(text.select(index), lengths[index], seed=seed, hint=hint.select(index))  # type: ignore[call-arg]
+        motions = gen.sample(text.select(index), lengths[index], seed=seed)
+    else:
+        motions = gen.sample(text.select(index), lengths[index], seed=seed, hint=hint.select(index))  # type: ignore[call-arg]
+    if not np.isfinite(motions).all():
+        raise ValueError(f"row {gen.name}: its sampled motions are not finite (NaN or infinity); check its "
+                         "sampling settings (the sample section, e.g. a guidance scale) and its trained model")
+    return motions
 
 
 def multimodality(gen: Generator, d: Draw, embedder: MotionEmbedder, mean: np.ndarray, std: np.ndarray,
@@ -347,14 +373,25 @@ def load_references(path: Path, items: Sequence[StoredItem], cfg: EvalConfig) ->
     """:func:`references` as saved by :func:`save_references`; an error if they belong to other items or cfg."""
     check_group_size(len(items), cfg)
     refs = []
-    with np.load(path, allow_pickle=False) as saved:
-        if f"lengths_{cfg.replications - 1}" not in saved or f"lengths_{cfg.replications}" in saved:
-            raise ValueError(f"{path}: saved for another number of replications than {cfg.replications}")
-        for r in range(cfg.replications):
-            d, _ = _replication_draws(items, cfg, r)
-            if not np.array_equal(saved[f"lengths_{r}"], d.lengths):
-                raise ValueError(f"{path}: saved for other test items or another evaluate.seed")
-            refs.append(Reference(d, saved[f"text_emb_{r}"], saved[f"ref_mu_{r}"], saved[f"ref_sigma_{r}"]))
+    try:
+        with np.load(path, allow_pickle=False) as saved:
+            if f"lengths_{cfg.replications - 1}" not in saved or f"lengths_{cfg.replications}" in saved:
+                raise ValueError(f"{path}: saved for another number of replications than {cfg.replications}")
+            for r in range(cfg.replications):
+                d, _ = _replication_draws(items, cfg, r)
+                if not np.array_equal(saved[f"lengths_{r}"], d.lengths):
+                    raise ValueError(f"{path}: saved for other test items or another evaluate.seed")
+                ref = Reference(d, saved[f"text_emb_{r}"], saved[f"ref_mu_{r}"], saved[f"ref_sigma_{r}"])
+                dim = ref.ref_mu.shape[0] if ref.ref_mu.ndim == 1 else -1
+                if ref.ref_sigma.shape != (dim, dim) or ref.text_emb.ndim != 2:
+                    raise ValueError(f"{path}: replication {r}'s arrays do not fit together (mu {ref.ref_mu.shape}, "
+                                     f"sigma {ref.ref_sigma.shape}, text {ref.text_emb.shape})")
+                refs.append(ref)
+    except FileNotFoundError:
+        raise
+    except (OSError, ValueError, KeyError, zipfile.BadZipFile, EOFError) as err:
+        message = str(err) if str(err).startswith(str(path)) else f"{path}: unreadable ({err})"
+        raise ValueError(f"{message}; run `dvc repro eval_real` to write it again") from None
     return refs
 
 

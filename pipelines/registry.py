@@ -23,6 +23,9 @@ from typing import Any
 from models.generator import Generator, Reconstructor
 from pipelines.feature_store import FeatureStore
 
+#: Training runs whose output folder is written by a DVC stage of another name.
+WRITTEN_BY = {"train_evaluator_movement": "train_evaluator", "train_evaluator_recogniser": "train_evaluator"}
+
 
 @dataclass
 class EvalContext:
@@ -37,10 +40,11 @@ class EvalContext:
         return FeatureStore(self.features)
 
     def trained(self, stage: str) -> Path:
-        """A training stage's output folder; FileNotFoundError naming the command when it is missing."""
+        """A training run's output folder; FileNotFoundError naming the command when it is missing."""
         out = self.artifacts / stage
         if not (out / "model.pt").is_file():
-            raise FileNotFoundError(f"{out}/model.pt is missing: run `dvc repro {stage}` first")
+            producer = WRITTEN_BY.get(stage, stage)
+            raise FileNotFoundError(f"{out}/model.pt is missing: run `dvc repro {producer}` first")
         return out
 
 

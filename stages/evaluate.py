@@ -41,8 +41,16 @@ from models.generator import Generator, Reconstructor
 from pipelines.action_evaluation import ActionGenerator, evaluate_action_rows, load_recogniser
 from pipelines.checkpoint import skipped
 from pipelines.cli import HELP_FLAGS, artifacts_dir, repo_path, run_main
-from pipelines.config import check_fields, check_keys, check_number, check_type
-from pipelines.evaluation import EvalConfig, evaluate, load_evaluator, load_references, references, save_references
+from pipelines.config import check_fields, check_keys, check_number, check_type, refuse
+from pipelines.evaluation import (
+    EvalConfig,
+    check_protocol,
+    evaluate,
+    load_evaluator,
+    load_references,
+    references,
+    save_references,
+)
 from pipelines.paraphrase import semantics
 from pipelines.registry import FAMILIES, EvalContext, family
 
@@ -68,12 +76,7 @@ def check_section(params: dict[str, Any]) -> None:
     """The ``evaluate`` section checked before any work; a ValueError naming the key, its value and what is allowed."""
     cfg = check_type(params, "evaluate", "", kind=dict)
     check_fields({key: value for key, value in cfg.items() if key != "samples"}, EvalConfig, "evaluate")
-    for key in ("replications", "group_size", "unit_length"):
-        check_number(cfg, key, "evaluate", low=1, integer=True)
-    for key in ("diversity_times", "mm_texts", "mm_repeats", "mm_times", "timing_sentences", "seed"):
-        check_number(cfg, key, "evaluate", low=0, integer=True)
-    if cfg.get("timing_seconds") is not None:
-        check_number(cfg, "timing_seconds", "evaluate", low=0.0, low_open=True)
+    check_protocol(cfg)
     rows = cfg.get("paraphrase_rows", [])
     if not isinstance(rows, list) or not all(isinstance(row, str) for row in rows):
         raise ValueError(f"evaluate.paraphrase_rows must be a list of row names, got {rows!r}")
@@ -81,6 +84,8 @@ def check_section(params: dict[str, Any]) -> None:
     check_type(samples, "rows", "evaluate.samples", kind=list)
     check_number(samples, "length", "evaluate.samples", low=4, high=196, integer=True)
     check_type(samples, "prompts", "evaluate.samples", kind=list)
+    if samples["rows"] and not samples["prompts"]:
+        refuse(f"evaluate.samples.prompts: rows {samples['rows']} are drawn for these prompts, and there are none")
 
 
 def render_samples(rows: Sequence[Generator], ctx: EvalContext, out: Path) -> None:

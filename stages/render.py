@@ -18,7 +18,7 @@ import numpy as np
 
 from data.humanml3d import FEATURES_DIR, JOINTS_DIR, TEXTS_DIR, read_captions
 from data.render import joints_of, render_animation
-from data.skeleton import get_skeleton
+from data.skeleton import Skeleton, get_skeleton
 from pipelines.config import REPO_ROOT, load_params
 
 
@@ -35,15 +35,36 @@ def find_motion(target: str, root: Path) -> tuple[np.ndarray, str | None, str]:
         FileNotFoundError: neither an existing file nor a clip of the dataset.
     """
     path = Path(target)
-    if path.suffix == ".npy" and path.is_file():
-        return np.load(path), None, path.stem
+    if path.suffix.lower() == ".npy" and path.is_file():
+        return load_motion(path), None, path.stem
     for sub in (JOINTS_DIR, FEATURES_DIR):
         candidate = root / sub / f"{target}.npy"
         if candidate.is_file():
             texts = root / TEXTS_DIR / f"{target}.txt"
             caption = read_captions(texts)[0].text if texts.is_file() else None
-            return np.load(candidate), caption, target
+            return load_motion(candidate), caption, target
     raise FileNotFoundError(f"{target!r} is neither a .npy file nor a clip id in {root}")
+
+
+def load_motion(path: Path) -> np.ndarray:
+    """A ``.npy`` motion read without unpickling; ValueError naming the file when it cannot be read."""
+    try:
+        return np.load(path, allow_pickle=False)
+    except (OSError, ValueError, EOFError) as err:
+        raise ValueError(f"{path}: not a readable .npy array ({err})") from None
+
+
+def check_motion(motion: np.ndarray, skeleton: Skeleton, where: str) -> None:
+    """ValueError naming ``where`` unless ``motion`` is ``skeleton``'s joints (T, J, 3) or features
+    (T, 12J - 1) of real, finite numbers with T >= 1 (joints_of would index past a wrong shape or draw NaN)."""
+    joints, features = (skeleton.joints_num, 3), (skeleton.feature_dim,)
+    if motion.dtype.kind not in "iuf":
+        raise ValueError(f"{where}: expected real numbers, got dtype {motion.dtype}")
+    if motion.ndim < 2 or motion.shape[1:] not in (joints, features) or len(motion) == 0:
+        raise ValueError(f"{where}: expected {skeleton.name} joints (T, {joints[0]}, 3) or features "
+                         f"(T, {features[0]}) with T >= 1, got shape {motion.shape}")
+    if not np.isfinite(motion).all():
+        raise ValueError(f"{where}: NaN or infinite values")
 
 
 def main(argv: Sequence[str] | None = None) -> Path:
@@ -56,14 +77,17 @@ def main(argv: Sequence[str] | None = None) -> Path:
     parser.add_argument("--skeleton", help="humanml3d or kit (default: data.skeleton)")
     parser.add_argument("--stride", type=int, default=2, help="draw every n-th frame (default 2)")
     args = parser.parse_args(argv)
+    if args.stride < 1:
+        parser.error(f"--stride {args.stride}: draw every n-th frame, n at least 1")
     try:
         data_cfg = load_params([])["data"]
         root = args.root or (REPO_ROOT / data_cfg["root"])
         skeleton = get_skeleton(args.skeleton or data_cfg["skeleton"])
         motion, caption, name = find_motion(args.motion, root)
+        check_motion(motion, skeleton, args.motion)
         out = args.out or REPO_ROOT / "artifacts" / "renders" / f"{name}.gif"
         render_animation(joints_of(motion, _recover, skeleton), out, args.caption or caption, skeleton, args.stride)
-    except (ValueError, OSError) as err:  # a user's file or option: one line, exit status 1
+    except (ValueError, OSError, RuntimeError) as err:  # a user's file or option (MP4 without ffmpeg): one line
         sys.exit(f"render: {err}")
     print(out)
     return out

@@ -13,6 +13,7 @@ opens offline). Each file is replaced atomically.
 from __future__ import annotations
 
 import json
+import math
 import os
 from collections.abc import Sequence
 from pathlib import Path
@@ -27,6 +28,8 @@ from pipelines.report_html import report_html
 PARAMS = ("paths.artifacts",)
 SOURCES = ("real", *FAMILIES)
 SPEED = "speed"  # stages/speed.py's folder
+#: The files the report writes in ``artifacts/eval`` (beside the ``samples`` folder).
+OUTPUTS = ("metrics.json", "summary.json", "report.md", "fid_vs_time.png", "report.html")
 
 #: The figures ``summary.json`` keeps, ``(row, metric)``: the evaluator's R-precision on real motions,
 #: the FID of each text family's headline row, and the action family's accuracy and FID (in the action
@@ -45,6 +48,20 @@ def _read_json(path: Path) -> Any:
         raise FileNotFoundError(f"{path} is missing: run `dvc repro {stage}` first") from None
     except json.JSONDecodeError as err:
         raise ValueError(f"{path}: not valid JSON ({err})") from err
+
+
+def _read_table(path: Path) -> dict[str, dict[str, float]]:
+    """An evaluation stage's ``metrics.json``: ``{row: {metric: finite number}}``; ValueError naming the file
+    and the first bad entry otherwise (a row dropped or a NaN written into summary.json, without a word)."""
+    table = _read_json(path)
+    again = f"run `dvc repro eval_{path.parent.name}` to write it again"
+    if not isinstance(table, dict) or not all(isinstance(metrics, dict) for metrics in table.values()):
+        raise ValueError(f"{path}: expected {{row: {{metric: number}}}}; {again}")
+    for row, metrics in table.items():
+        for key, value in metrics.items():
+            if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value):
+                raise ValueError(f"{path}: {row}: {key} is {value!r}, not a finite number; {again}")
+    return table
 
 
 def _replace(path: Path, write: Any) -> None:
@@ -86,9 +103,12 @@ def run(params: dict[str, Any]) -> dict[str, dict[str, float]]:
     """Merge, write and print the report; returns the merged table."""
     eval_dir = artifacts_dir(params) / "eval"
     check_output(eval_dir / "samples", owner="report")
-    table = merge_tables([_read_json(eval_dir / name / "metrics.json") for name in SOURCES])
+    for name in OUTPUTS:  # checked before any is replaced, so that a failure leaves the old report whole
+        if (eval_dir / name).is_dir():
+            raise ValueError(f"{eval_dir / name} is a directory, where the report writes a file; move it away")
+    table = merge_tables([_read_table(eval_dir / name / "metrics.json") for name in SOURCES])
     meta = _read_json(eval_dir / "real" / "meta.json")
-    speed = _read_json(eval_dir / SPEED / "metrics.json")
+    speed = _read_table(eval_dir / SPEED / "metrics.json")
     samples = _read_samples(eval_dir)
     report = report_markdown(table, meta, speed)
     _replace(eval_dir / "metrics.json", lambda p: p.write_text(json.dumps(table, indent=2) + "\n"))

@@ -26,7 +26,7 @@ from models.generator import Generator
 from pipelines.checkpoint import skipped
 from pipelines.cli import artifacts_dir, repo_path, run_main
 from pipelines.config import check_fields, check_keys, check_number, check_type
-from pipelines.evaluation import EvalConfig, draw
+from pipelines.evaluation import EvalConfig, check_protocol, draw
 from pipelines.registry import FAMILIES, EvalContext
 from pipelines.speed import side_by_side
 
@@ -47,6 +47,7 @@ def check_section(params: dict[str, Any]) -> None:
     key, its value and what is allowed."""
     check_type(params, "evaluate", "", kind=dict)
     check_fields(timing_section(params), EvalConfig, "evaluate")
+    check_protocol(params["evaluate"])
     cfg = check_keys(params["speed"], "speed", ("rows", "rounds"))
     rows = cfg["rows"]
     if not isinstance(rows, list) or len(rows) < 2 or not all(isinstance(row, str) for row in rows):

@@ -165,6 +165,17 @@ def test_file_at_the_path_is_refused_and_unchanged(tmp_path):
     assert [p.name for p in tmp_path.iterdir()] == ["features"]
 
 
+def test_a_file_where_a_folder_above_should_be_is_refused_before_any_work(tmp_path):
+    """``artifacts/eval`` a file: the stage that writes ``artifacts/eval/real`` stops at its check, not with a
+    traceback once its work is done."""
+    (tmp_path / "eval").write_text("not a folder")
+    assert _refused(tmp_path / "eval" / "real", "eval_real") == (
+        f"refusing to replace {tmp_path / 'eval' / 'real'}: {tmp_path / 'eval'} is a file, not a directory; "
+        "move it away or choose another output path")
+    with pytest.raises(ValueError, match="is a file, not a directory"):
+        check_output(tmp_path / "eval" / "real" / "deeper", owner="eval_real")
+
+
 def test_symbolic_link_is_refused(tmp_path):
     target = tmp_path / "target"
     write_output(target, "stage")

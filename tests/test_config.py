@@ -398,3 +398,22 @@ def stage_params(name: str) -> dict:
     module = importlib.import_module(f"stages.{name}")
     keys = module.STAGE.params if hasattr(module, "STAGE") else module.PARAMS
     return restrict_params(read_params(PARAMS_PATH), keys)
+
+
+def test_the_evaluation_protocol_refuses_counts_it_would_divide_by_or_draw_from():
+    """Each of these passed the checks and failed after the whole evaluation (a division by zero, an empty
+    batch), or dropped MultiModality without a word (mm_repeats <= mm_times)."""
+    from pipelines.evaluation import check_protocol
+
+    cfg = dict(load_params([])["evaluate"], timing_sentences=0, mm_texts=0, diversity_times=0, mm_repeats=5)
+    with pytest.raises(ConfigError) as err, every_problem():
+        check_protocol(cfg)
+    assert str(err.value).splitlines() == [
+        "evaluate.diversity_times: expected an integer >= 1, got 0",
+        "evaluate.mm_texts: expected an integer >= 1, got 0",
+        "evaluate.timing_sentences: expected an integer >= 1, got 0",
+        "evaluate.mm_repeats: expected 0 (no MultiModality) or more than evaluate.mm_times (10), got 5",
+    ]
+    check_protocol(dict(load_params([])["evaluate"], mm_repeats=0))  # 0: no MultiModality, as documented
+    for scale in ("smoke", "paper"):
+        check_protocol(load_params([f"scale={scale}"])["evaluate"])

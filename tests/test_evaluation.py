@@ -333,3 +333,52 @@ def test_controlled_rows_are_scored_on_their_hints_keyframes(world):
         assert not hint.mask[:, :, 1:].any()  # the pelvis only
         assert np.allclose(hint.joints[:, :, 0, 1][hint.mask[:, :, 0]], 0.9)  # the real crops' pelvis height
     assert "avg_err_m" in table["Drift-5f"] and "AITS_s" in table["Drift-5f"]
+
+
+def test_a_bad_references_file_is_one_line_naming_it(world, tmp_path):
+    """Truncated, missing an array, holding objects, or arrays that do not fit: a ValueError naming the file
+    and how to write it again (they came as tracebacks or without the file); never unpickled."""
+    codes, test, _ = world
+    good = tmp_path / "references.npz"
+    save_references(good, references(test, StubEmbedder(codes), CFG))
+    assert len(load_references(good, test, CFG)) == CFG.replications
+    saved = dict(np.load(good))
+    cases = {"truncated": None, "no mu": {k: v for k, v in saved.items() if k != "ref_mu_0"},
+             "objects": {**saved, "ref_mu_0": np.array([{"x": 1}], dtype=object)},
+             "shapes": {**saved, "ref_mu_0": saved["ref_mu_0"][:3]}}
+    for name, arrays in cases.items():
+        path = tmp_path / f"{name}.npz"
+        if arrays is None:
+            path.write_bytes(good.read_bytes()[:100])
+        else:
+            np.savez(path, **arrays)
+        with pytest.raises(ValueError) as err:
+            load_references(path, test, CFG)
+        message = str(err.value)
+        assert message.startswith(f"{path}: ") and message.endswith("; run `dvc repro eval_real` to write it again"), \
+            (name, message)
+
+
+def test_a_row_whose_motions_are_not_finite_is_named():
+    """NaN motions (an extreme guidance scale) failed far away, in the FID's matrix square root."""
+    from pipelines.evaluation import sample_rows
+
+    class NaNGenerator:
+        name, nfe, stochastic = "Overdriven", 1, True
+
+        def sample(self, text: TextBatch, lengths: np.ndarray, seed: int) -> np.ndarray:
+            return np.full((len(lengths), int(lengths.max()), D), np.nan, np.float32)
+
+    text = TextBatch(["a person walks"], np.zeros((1, 4), np.float32), [np.zeros((2, 4), np.float32)])
+    with pytest.raises(ValueError, match=r"^row Overdriven: its sampled motions are not finite"):
+        sample_rows(NaNGenerator(), text, np.array([8]), 0, None, [0])
+
+
+def test_a_missing_model_names_the_dvc_stage_that_writes_it(tmp_path):
+    """The recogniser and movement encoder are written by ``train_evaluator``: no stage bears their names."""
+    from pipelines.registry import EvalContext
+
+    ctx = EvalContext({}, tmp_path, tmp_path / "features")
+    for run, stage in (("train_evaluator_recogniser", "train_evaluator"), ("train_mld", "train_mld")):
+        with pytest.raises(FileNotFoundError, match=rf"{run}/model.pt is missing: run `dvc repro {stage}` first"):
+            ctx.trained(run)

@@ -133,7 +133,7 @@ def test_render_command_errors_are_one_line(tmp_path, motion):
     good = tmp_path / "good.npy"
     np.save(good, motion.joints)
     cases = [(["999999", "--root", str(tmp_path)], "is neither a .npy file nor a clip id"),
-             ([str(flat), "--out", str(tmp_path / "flat.gif")], "got (120, 3)"),
+             ([str(flat), "--out", str(tmp_path / "flat.gif")], "got shape (120, 3)"),
              ([str(good), "--out", str(tmp_path / "good.txt")], "good.txt")]
     for argv, message in cases:
         with pytest.raises(SystemExit) as exit_info:
@@ -257,3 +257,22 @@ def test_limbs_are_coloured_by_the_side_the_rest_pose_puts_them_on():
             j = skeleton.joint_names.index(joint)
             [k] = [k for k, chain in enumerate(skeleton.kinematic_chain) if j in chain[1:]]
             assert colors[k] == legs_and_arms.get(limb, "#222222"), (skeleton.name, joint)
+
+
+@pytest.mark.parametrize(("array", "message"), [
+    (np.zeros((40, 5, 3)),
+     "expected humanml3d joints (T, 22, 3) or features (T, 263) with T >= 1, got shape (40, 5, 3)"),
+    (np.zeros((0, 22, 3)), "with T >= 1, got shape (0, 22, 3)"),
+    (np.zeros((40, 100)), "got shape (40, 100)"),
+    (np.full((40, 22, 3), np.nan), "NaN or infinite values"),
+    (np.zeros((40, 22, 3), complex), "expected real numbers, got dtype complex128"),
+    (np.array([{"x": 1}], dtype=object), "not a readable .npy array (Object arrays cannot be loaded"),
+])
+def test_render_refuses_a_motion_it_cannot_draw_in_one_line(tmp_path, array, message):
+    """A wrong shape gave an IndexError traceback or a meaningless GIF, NaN drew zeros; objects are never unpickled."""
+    path = tmp_path / "m.npy"
+    np.save(path, array, allow_pickle=True)
+    with pytest.raises(SystemExit) as exc:
+        render_stage.main([str(path), "--out", str(tmp_path / "m.gif"), "--skeleton", "humanml3d"])
+    assert str(exc.value.code).startswith(f"render: {path}: ") and message in str(exc.value.code)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["m.npy"]

@@ -227,3 +227,28 @@ def test_rows_evaluated_on_a_subset_are_marked() -> None:
     assert _name("A", {"eval_items": 32.0, "eval_replications": 1.0}) == "A (†32, 1 rep.)"
     assert _name("A", {"eval_replications": 1.0}) == "A (1 rep.)"
     assert report_notes({"A": {"eval_replications": 1.0}})[-1].startswith("(R rep.), (†K, R rep.):")
+
+
+@pytest.mark.parametrize(("text", "problem"), [
+    ("[]", "expected {row: {metric: number}}"),
+    ('{"EMDM-10": "x"}', "expected {row: {metric: number}}"),
+    ('{"EMDM-10": {"FID": NaN}}', "EMDM-10: FID is nan, not a finite number"),
+    ('{"EMDM-10": {"FID": "abc"}}', "EMDM-10: FID is 'abc', not a finite number"),
+])
+def test_a_bad_metrics_file_is_named_and_the_old_report_stays(artifacts: Path, text: str, problem: str) -> None:
+    """A table that is not rows of finite numbers was dropped, shown as "–" or written as NaN into summary.json."""
+    report_stage.run({"paths": {"artifacts": str(artifacts)}})
+    before = {name: (artifacts / "eval" / name).read_bytes() for name in report_stage.OUTPUTS}
+    bad = artifacts / "eval" / "emdm" / "metrics.json"
+    bad.write_text(text)
+    with pytest.raises(ValueError) as err:
+        report_stage.run({"paths": {"artifacts": str(artifacts)}})
+    assert str(err.value) == f"{bad}: {problem}; run `dvc repro eval_emdm` to write it again"
+    assert {name: (artifacts / "eval" / name).read_bytes() for name in report_stage.OUTPUTS} == before
+
+
+def test_a_folder_where_the_report_writes_a_file_stops_it_before_any_write(artifacts: Path) -> None:
+    (artifacts / "eval" / "report.html").mkdir()
+    with pytest.raises(ValueError, match=r"report.html is a directory, where the report writes a file"):
+        report_stage.run({"paths": {"artifacts": str(artifacts)}})
+    assert not (artifacts / "eval" / "metrics.json").exists() and not (artifacts / "eval" / "report.md").exists()
