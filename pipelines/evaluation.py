@@ -57,7 +57,7 @@ import time
 import zipfile
 import zlib
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, fields, replace
 from pathlib import Path
 from typing import Any
 
@@ -105,6 +105,7 @@ def check_protocol(cfg: Mapping[str, Any]) -> None:
     """The numbers of the ``evaluate`` section (:class:`EvalConfig`) checked before any work, each refusal one
     line naming the key (:func:`pipelines.config.refuse`): counts that the protocol divides by or draws
     from are at least 1, and MultiModality draws ``mm_times`` pairs from ``mm_repeats`` samples (0: none)."""
+    cfg = {field.name: field.default for field in fields(EvalConfig)} | dict(cfg)  # keys left out: the defaults
     for key in ("replications", "group_size", "unit_length", "diversity_times", "mm_texts", "mm_times",
                 "timing_sentences"):
         check_number(cfg, key, "evaluate", low=1, integer=True)

@@ -50,8 +50,10 @@ def check_section(params: dict[str, Any]) -> None:
     check_protocol(params["evaluate"])
     cfg = check_keys(params["speed"], "speed", ("rows", "rounds"))
     rows = cfg["rows"]
-    if not isinstance(rows, list) or len(rows) < 2 or not all(isinstance(row, str) for row in rows):
+    if not isinstance(rows, list) or not all(isinstance(row, str) for row in rows) or len(rows) < 2:
         raise ValueError(f"speed.rows must be a list of two or more row names, got {rows!r}")
+    if len(set(rows)) != len(rows):
+        raise ValueError(f"speed.rows names a row twice: {rows!r}")
     check_number(cfg, "rounds", "speed", low=1, integer=True)
 
 

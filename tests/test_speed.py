@@ -63,10 +63,19 @@ def test_side_by_side_refuses_duplicate_rows_and_zero_rounds() -> None:
     ({"rows": "EMDM-10", "rounds": 2}, "two or more row names"),
     ({"rows": ["EMDM-10", "MotionDiffuse-1000"], "rounds": 0}, "speed.rounds"),
     ({"rows": ["EMDM-10", "MotionDiffuse-1000"], "rounds": 2, "warmup": 1}, "warmup"),
+    ({"rows": ["EMDM-10", "EMDM-10", "MotionDiffuse-1000"], "rounds": 2}, "names a row twice"),  # failed after loading
+    ({"rows": [{"a": 1}, "EMDM-10"], "rounds": 2}, "two or more row names"),
 ])
 def test_the_stage_names_a_bad_speed_key(section: dict, message: str) -> None:
     with pytest.raises(ValueError, match=message):
         check_section({"speed": section, "evaluate": {"replications": 3}})
+
+
+def test_the_stage_refuses_a_protocol_count_it_would_divide_by() -> None:
+    """eval_speed reads the evaluate section's timing counts: 0 captions divided by zero after the models loaded."""
+    with pytest.raises(ValueError, match=r"evaluate.timing_sentences: expected an integer >= 1, got 0"):
+        check_section({"speed": {"rows": ["EMDM-10", "MotionDiffuse-1000"], "rounds": 2},
+                       "evaluate": {"timing_sentences": 0}})
 
 
 def test_the_stage_accepts_the_default_section() -> None:
