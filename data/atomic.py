@@ -14,6 +14,8 @@ Temporary and previous copies are siblings named ``.<name>.tmp-<host>-<pid>-<ran
 creating process on this host has died, and, when a kill between the two renames left no final
 directory, renames the previous copy back. Copies of live processes or of other hosts are never
 touched, so concurrent writers do not disturb each other.
+
+A single file is replaced the same way, without a manifest: :func:`replace_file`.
 """
 
 from __future__ import annotations
@@ -26,7 +28,7 @@ import shutil
 import socket
 import tempfile
 import warnings
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
@@ -168,3 +170,14 @@ def atomic_directory(final: Path, *, owner: str) -> Iterator[Path]:
     shutil.rmtree(old, ignore_errors=True)
     if old.exists():
         warnings.warn(f"could not remove the previous {final.name} at {old}", stacklevel=3)
+
+
+def replace_file(path: Path, write: Callable[[Path], object]) -> None:
+    """``write(tmp)`` into a temporary sibling of ``path`` (same suffix, for writers that go by it), then
+    rename it onto ``path``: a failed write leaves the previous file, or none, never half of one."""
+    tmp = path.with_name(f".{path.stem}.tmp{path.suffix}")
+    try:
+        write(tmp)
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)

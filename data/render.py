@@ -17,7 +17,6 @@ camera then stays still, framing the whole target and the root's path.
 
 from __future__ import annotations
 
-import os
 import shutil
 import textwrap
 from collections.abc import Callable, Sequence
@@ -31,6 +30,7 @@ from matplotlib.figure import Figure
 from matplotlib.text import Text
 from PIL import Image
 
+from data.atomic import replace_file
 from data.skeleton import HUMANML3D, Skeleton
 
 GRID_STEP = 0.5
@@ -300,15 +300,10 @@ def render_animation(joints: np.ndarray, path: Path | str, caption: str | None =
         raise RuntimeError("writing MP4 needs ffmpeg on PATH; write a .gif instead")
     images = render_frames(joints, caption, skeleton, stride, target_path=target_path, **view)
     path.parent.mkdir(parents=True, exist_ok=True)
-    partial = path.with_name(f".{path.stem}.partial{suffix}")  # renamed when whole: no half-written file
-    try:
-        if suffix == ".gif":
-            _save_gif(images, partial, int(round(1000 * stride / skeleton.fps)))
-        else:
-            _write_mp4(images, partial, skeleton.fps / stride)
-        os.replace(partial, path)
-    finally:
-        partial.unlink(missing_ok=True)
+    if suffix == ".gif":
+        replace_file(path, lambda tmp: _save_gif(images, tmp, int(round(1000 * stride / skeleton.fps))))
+    else:
+        replace_file(path, lambda tmp: _write_mp4(images, tmp, skeleton.fps / stride))
     return path
 
 

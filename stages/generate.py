@@ -479,6 +479,7 @@ def sample_all(ctx: EvalContext, generator: Any, request: Request,
     its pelvis path, for a controlled model), so that its motion does not depend on the other prompts."""
     joints = []
     for k, (prompt, target) in enumerate(zip(request.prompts, targets, strict=True)):
+        # encoded alone too: in a batch, padding to the longest prompt may move the embedding's last bits
         text, lengths, seed = ctx.store.encode_prompts([prompt.text]), np.array([prompt.length]), request.seed + k
         if target is None:
             motions = generator.sample(text, lengths, seed)

@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from data.humanml3d import FEATURES_DIR, JOINTS_DIR, TEXTS_DIR, read_captions
+from data.humanml3d import FEATURES_DIR, JOINTS_DIR, TEXTS_DIR, array_problem, load_npy, read_captions
 from data.render import joints_of, render_animation
 from data.skeleton import Skeleton, get_skeleton
 from pipelines.config import REPO_ROOT, load_params
@@ -47,24 +47,20 @@ def find_motion(target: str, root: Path) -> tuple[np.ndarray, str | None, str]:
 
 
 def load_motion(path: Path) -> np.ndarray:
-    """A ``.npy`` motion read without unpickling; ValueError naming the file when it cannot be read."""
+    """A ``.npy`` motion read without unpickling (:func:`data.humanml3d.load_npy`); ValueError naming the file."""
     try:
-        return np.load(path, allow_pickle=False)
-    except (OSError, ValueError, EOFError) as err:
+        return load_npy(path)
+    except (OSError, ValueError) as err:
         raise ValueError(f"{path}: not a readable .npy array ({err})") from None
 
 
 def check_motion(motion: np.ndarray, skeleton: Skeleton, where: str) -> None:
-    """ValueError naming ``where`` unless ``motion`` is ``skeleton``'s joints (T, J, 3) or features
-    (T, 12J - 1) of real, finite numbers with T >= 1 (joints_of would index past a wrong shape or draw NaN)."""
-    joints, features = (skeleton.joints_num, 3), (skeleton.feature_dim,)
-    if motion.dtype.kind not in "iuf":
-        raise ValueError(f"{where}: expected real numbers, got dtype {motion.dtype}")
-    if motion.ndim < 2 or motion.shape[1:] not in (joints, features) or len(motion) == 0:
-        raise ValueError(f"{where}: expected {skeleton.name} joints (T, {joints[0]}, 3) or features "
-                         f"(T, {features[0]}) with T >= 1, got shape {motion.shape}")
-    if not np.isfinite(motion).all():
-        raise ValueError(f"{where}: NaN or infinite values")
+    """ValueError naming ``where`` unless ``motion`` is ``skeleton``'s joints (T, J, 3) or features (T, 12J - 1)
+    of finite real numbers, as the dataset reader checks them (:func:`data.humanml3d.array_problem`): joints_of
+    would index past a wrong shape or draw NaN."""
+    reason = array_problem(motion, skeleton, "joints" if motion.ndim == 3 else "features")
+    if reason is not None:
+        raise ValueError(f"{where}: {reason}")
 
 
 def main(argv: Sequence[str] | None = None) -> Path:

@@ -14,12 +14,11 @@ from __future__ import annotations
 
 import json
 import math
-import os
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from data.atomic import atomic_directory, check_output
+from data.atomic import atomic_directory, check_output, replace_file
 from pipelines.cli import artifacts_dir, run_main
 from pipelines.registry import FAMILIES
 from pipelines.report import merge_tables, plot_fid_vs_time, report_markdown
@@ -64,16 +63,6 @@ def _read_table(path: Path) -> dict[str, dict[str, float]]:
     return table
 
 
-def _replace(path: Path, write: Any) -> None:
-    """Write ``path`` through a temporary sibling (same suffix) and rename it into place."""
-    tmp = path.with_name(f".{path.stem}.tmp{path.suffix}")
-    try:
-        write(tmp)
-        os.replace(tmp, path)
-    finally:
-        tmp.unlink(missing_ok=True)
-
-
 def _read_samples(eval_dir: Path) -> list[tuple[str, bytes]]:
     """Every family's sample files ``(name, bytes)``, families in ``SOURCES`` order, names sorted."""
     return [(path.name, path.read_bytes())
@@ -84,7 +73,7 @@ def _write_html(eval_dir: Path, table: dict[str, dict[str, float]], meta: dict[s
                 samples: list[tuple[str, bytes]], speed: dict[str, dict[str, float]]) -> None:
     """``report.html`` from the merged table, the plot already written, the samples and the speed table."""
     page = report_html(table, meta, (eval_dir / "fid_vs_time.png").read_bytes(), samples, speed)
-    _replace(eval_dir / "report.html", lambda p: p.write_text(page, encoding="utf-8"))
+    replace_file(eval_dir / "report.html", lambda p: p.write_text(page, encoding="utf-8"))
 
 
 def summary(table: dict[str, dict[str, float]]) -> dict[str, dict[str, float]]:
@@ -111,10 +100,10 @@ def run(params: dict[str, Any]) -> dict[str, dict[str, float]]:
     speed = _read_table(eval_dir / SPEED / "metrics.json")
     samples = _read_samples(eval_dir)
     report = report_markdown(table, meta, speed)
-    _replace(eval_dir / "metrics.json", lambda p: p.write_text(json.dumps(table, indent=2) + "\n"))
-    _replace(eval_dir / "summary.json", lambda p: p.write_text(json.dumps(summary(table), indent=2) + "\n"))
-    _replace(eval_dir / "report.md", lambda p: p.write_text(report, encoding="utf-8"))
-    _replace(eval_dir / "fid_vs_time.png", lambda p: plot_fid_vs_time(table, p))
+    replace_file(eval_dir / "metrics.json", lambda p: p.write_text(json.dumps(table, indent=2) + "\n"))
+    replace_file(eval_dir / "summary.json", lambda p: p.write_text(json.dumps(summary(table), indent=2) + "\n"))
+    replace_file(eval_dir / "report.md", lambda p: p.write_text(report, encoding="utf-8"))
+    replace_file(eval_dir / "fid_vs_time.png", lambda p: plot_fid_vs_time(table, p))
     with atomic_directory(eval_dir / "samples", owner="report") as tmp:
         for name, data in samples:
             (tmp / name).write_bytes(data)

@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from data.atomic import MANIFEST, atomic_directory, check_output, manifest_owner
+from data.atomic import MANIFEST, atomic_directory, check_output, manifest_owner, replace_file
 from pipelines.config import REPO_ROOT
 
 FIXTURE_JOINTS = Path(__file__).parent / "fixtures" / "humanml3d" / "new_joints_012314.npy"
@@ -356,3 +356,17 @@ def test_stage_refuses_a_foreign_output_directory(small_store, tmp_path):
         f"did not write (no {MANIFEST} inside); move it away or choose another output path"]
     assert snapshot(foreign) == before
     assert [p.name for p in tmp_path.iterdir()] == ["mine"]
+
+
+def test_replace_file_keeps_the_previous_file_when_the_write_fails(tmp_path):
+    path = tmp_path / "report.md"
+    replace_file(path, lambda tmp: tmp.write_text("first"))
+    assert path.read_text() == "first"
+
+    def half_then_fail(tmp: Path) -> None:
+        tmp.write_text("half")
+        raise RuntimeError("writer died")
+
+    with pytest.raises(RuntimeError, match="writer died"):
+        replace_file(path, half_then_fail)
+    assert path.read_text() == "first" and [p.name for p in tmp_path.iterdir()] == ["report.md"]

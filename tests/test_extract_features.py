@@ -27,6 +27,7 @@ from stages.extract_features import fail_summary, filter_summary, main, run
 
 FIXTURE = Path(__file__).parent / "fixtures" / "humanml3d" / "new_joints_012314.npy"
 REPO = Path(__file__).resolve().parent.parent
+GOOD_PARAPHRASE = "somebody strolls#somebody/NOUN stroll/VERB#0.0#0.0"
 CAPTIONS = ["a person walks forward", "someone steps ahead slowly", "a man kicks with the left leg"]
 
 
@@ -105,6 +106,21 @@ def test_worker_count_does_not_change_the_store(dataset, tmp_path):
     np.testing.assert_array_equal(np.load(one / "std.npy"), np.load(two / "std.npy"))
 
 
+def _exit_message(params: dict, monkeypatch) -> str:
+    """What ``python -m stages.extract_features`` exits with on ``params`` (it must fail)."""
+    monkeypatch.setattr("pipelines.cli.load_params", lambda argv: params)
+    with pytest.raises(SystemExit) as exc:
+        main([])
+    return str(exc.value)
+
+
+def _write_paraphrases(root: Path, lines: dict[str, str]) -> None:
+    """``paraphrases/<clip id>.txt`` files of ``root``: clip id -> its one caption line."""
+    (root / "paraphrases").mkdir()
+    for clip_id, line in lines.items():
+        (root / "paraphrases" / f"{clip_id}.txt").write_text(line + "\n")
+
+
 def _corrupt_copy(dataset: Path, tmp_path: Path) -> Path:
     import shutil
 
@@ -118,11 +134,8 @@ def _corrupt_copy(dataset: Path, tmp_path: Path) -> Path:
 def test_bad_input_fails_naming_the_file_and_writes_nothing(dataset, tmp_path, monkeypatch):
     root = _corrupt_copy(dataset, tmp_path)
     out = tmp_path / "features"
-    params = _params(root, out)
-    monkeypatch.setattr("pipelines.cli.load_params", lambda argv: params)
-    with pytest.raises(SystemExit) as exc:
-        main([])
-    assert "0002.npy" in str(exc.value) and "nothing written" in str(exc.value)
+    message = _exit_message(_params(root, out), monkeypatch)
+    assert "0002.npy" in message and "nothing written" in message
     assert not out.exists()
     assert [p.name for p in tmp_path.iterdir()] == ["corrupt"]  # no temp directory left behind
 
@@ -143,13 +156,9 @@ def test_fail_mode_lists_reading_and_extraction_problems_in_one_run(dataset, tmp
     root = _degenerate_copy(dataset, tmp_path)
     bad = root / "new_joints" / "0002.npy"
     bad.write_bytes(bad.read_bytes()[:200])
-    (root / "paraphrases").mkdir()
-    (root / "paraphrases" / "0007.txt").write_text("somebody strolls#somebody/NOUN stroll/VERB#0.0#0.0\n")
-    params = _params(root, tmp_path / "features")
-    monkeypatch.setattr("pipelines.cli.load_params", lambda argv: params)
-    with pytest.raises(SystemExit) as exc:
-        main([])
-    lines = str(exc.value).splitlines()
+    _write_paraphrases(root, {"0007": GOOD_PARAPHRASE})
+    message = _exit_message(_params(root, tmp_path / "features"), monkeypatch)
+    lines = message.splitlines()
     assert lines[:2] == ["extract_features: bad input, nothing written.",
                          f"3 problem(s) in splits ['train', 'val', 'test'] of {root}:"]
     assert lines[2].startswith(f"  - {root}/new_joints/0002.npy: unreadable or corrupt .npy")
@@ -164,14 +173,9 @@ def test_a_bad_paraphrase_set_stops_the_stage_before_anything_is_written(dataset
     """The evaluation would stop on it after every model trained: the stage checks it first, in both modes."""
     root = tmp_path / "copy"
     shutil.copytree(dataset, root)
-    (root / "paraphrases").mkdir()
-    (root / "paraphrases" / "0007.txt").write_text("somebody strolls#somebody/NOUN stroll/VERB#0.0#0.0\n")
-    (root / "paraphrases" / "0008.txt").write_text("somebody strolls#0.0#0.0\n")  # no word/POS field
-    params = _params(root, tmp_path / "features", on_error=on_error)
-    monkeypatch.setattr("pipelines.cli.load_params", lambda argv: params)
-    with pytest.raises(SystemExit) as exc:
-        main([])
-    lines = str(exc.value).splitlines()
+    _write_paraphrases(root, {"0007": GOOD_PARAPHRASE, "0008": "somebody strolls#0.0#0.0"})  # 0008: no word/POS
+    message = _exit_message(_params(root, tmp_path / "features", on_error=on_error), monkeypatch)
+    lines = message.splitlines()
     assert lines[:2] == ["extract_features: bad input, nothing written.",
                          f"2 problem(s) in splits ['train', 'val', 'test'] of {root}:"]
     assert lines[2].startswith(f"  - {root}/paraphrases/0008.txt:1: bad caption line: ")
@@ -185,11 +189,8 @@ def test_fail_mode_lists_the_other_splits_problems_with_an_emptied_split(dataset
     root = _corrupt_copy(dataset, tmp_path)  # train's 0002.npy truncated
     val = root / "new_joints" / "0006.npy"
     val.write_bytes(val.read_bytes()[:200])
-    params = _params(root, tmp_path / "features")
-    monkeypatch.setattr("pipelines.cli.load_params", lambda argv: params)
-    with pytest.raises(SystemExit) as exc:
-        main([])
-    listed = [line.split(": ")[0] for line in str(exc.value).splitlines()[2:]]
+    message = _exit_message(_params(root, tmp_path / "features"), monkeypatch)
+    listed = [line.split(": ")[0] for line in message.splitlines()[2:]]
     assert listed == [f"  - {root}/new_joints/0002.npy", f"  - {root}/new_joints/0006.npy", f"  - {root}/val.txt"]
     assert not (tmp_path / "features").exists()
 
@@ -240,22 +241,16 @@ def test_empty_split_fails_in_one_line(dataset, tmp_path, monkeypatch):
     root = tmp_path / "copy"
     shutil.copytree(dataset, root)
     (root / "val.txt").write_text("")
-    params = _params(root, tmp_path / "features")
-    monkeypatch.setattr("pipelines.cli.load_params", lambda argv: params)
-    with pytest.raises(SystemExit) as exc:
-        main([])
-    assert str(exc.value) == (f"extract_features: bad input, nothing written: {root}/val.txt: split 'val' is empty: "
-                              "the file lists no clip id")
+    message = _exit_message(_params(root, tmp_path / "features"), monkeypatch)
+    assert message == (f"extract_features: bad input, nothing written: {root}/val.txt: split 'val' is empty: "
+                       "the file lists no clip id")
     assert not (tmp_path / "features").exists()
 
 
 def test_a_missing_dataset_folder_says_so_in_one_line(tmp_path, monkeypatch):
-    params = _params(tmp_path / "nowhere", tmp_path / "features")
-    monkeypatch.setattr("pipelines.cli.load_params", lambda argv: params)
-    with pytest.raises(SystemExit) as exc:
-        main([])
-    assert str(exc.value) == (f"extract_features: bad input, nothing written: {tmp_path / 'nowhere'}: no such dataset "
-                              "folder: point data.root at a folder in the HumanML3D layout (see the README)")
+    message = _exit_message(_params(tmp_path / "nowhere", tmp_path / "features"), monkeypatch)
+    assert message == (f"extract_features: bad input, nothing written: {tmp_path / 'nowhere'}: no such dataset "
+                       "folder: point data.root at a folder in the HumanML3D layout (see the README)")
     assert sorted(p.name for p in tmp_path.iterdir()) == []
 
 
