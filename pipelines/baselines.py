@@ -13,7 +13,7 @@ model registry's entry (``pipelines/registry.py``).
 from __future__ import annotations
 
 from collections.abc import Sequence
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -78,6 +78,11 @@ class Retrieval(_TrainingMotions):
             best = int(np.argmax(np.where(allowed, scores[b], -np.inf)))
             motions.append(self.motions[self.caption_owner[best]][:length])
         return pad_motions(motions, lengths)
+
+
+def row_names(params: dict[str, Any]) -> list[str]:
+    """The names :func:`rows` gives its rows."""
+    return [RandomMotion.name, Retrieval.name]
 
 
 def rows(ctx: EvalContext) -> list[Generator]:

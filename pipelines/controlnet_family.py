@@ -117,6 +117,11 @@ def _controlnet(ctx: EvalContext, name: str, density: str, refine: bool = False,
                                _refine_settings(ctx) if refine else None)
 
 
+def controlnet_row_names(params: dict[str, Any]) -> list[str]:
+    """The names :func:`controlnet_rows` gives its rows."""
+    return ["MotionLCM-Control", "MotionLCM-Control-5f", "MotionLCM-Control+refine", "MotionLCM-1-uncontrolled"]
+
+
 def controlnet_rows(ctx: EvalContext) -> list[ControlNetGenerator | Uncontrolled]:
     """MotionLCM-Control (100 %), -5f, +refine and the uncontrolled reference (one load)."""
     full = _controlnet(ctx, "MotionLCM-Control", "100%")

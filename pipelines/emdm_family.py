@@ -151,6 +151,11 @@ def _emdm(ctx: EvalContext, guidance: float) -> EMDMGeneratorRow:
                             ctx.params["sample"]["motion_batch"])
 
 
+def emdm_row_names(params: dict[str, Any]) -> list[str]:
+    """The names :func:`emdm_rows` gives its rows: T is ``train_emdm.num_steps``, which the model was trained with."""
+    return [f"EMDM-{params[TRAIN_STAGE]['num_steps']}"]
+
+
 def emdm_rows(ctx: EvalContext) -> list[Generator]:
     """EMDM with the T steps it was trained with (``EMDM-10``) and ``sample.emdm_guidance``."""
     return [_emdm(ctx, ctx.params["sample"]["emdm_guidance"])]

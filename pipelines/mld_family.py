@@ -162,6 +162,11 @@ def _mld(ctx: EvalContext, steps: int, guidance: float) -> MLDGenerator:
     return MLDGenerator(f"MLD-DDIM{steps}", denoiser, load_vae(ctx.trained("train_vae")), schedule, steps, guidance)
 
 
+def mld_row_names(params: dict[str, Any]) -> list[str]:
+    """The names :func:`mld_rows` gives its rows."""
+    return [f"MLD-DDIM{n}" for n in MLD_ROW_STEPS]
+
+
 def mld_rows(ctx: EvalContext) -> list[Generator]:
     """MLD with DDIM 50 (its published sampler) and the few-step DDIM 1/2/4 baselines (one load)."""
     first = _mld(ctx, MLD_ROW_STEPS[0], ctx.params["sample"]["mld_guidance"])
@@ -180,6 +185,11 @@ def _motionlcm(ctx: EvalContext, steps: int, guidance: float) -> MotionLCMGenera
     student = load_motionlcm(ctx.trained("distill_lcm"))
     return MotionLCMGenerator(f"MotionLCM-{steps}", student, load_vae(ctx.trained("train_vae")), schedule, steps,
                               guidance)
+
+
+def motionlcm_row_names(params: dict[str, Any]) -> list[str]:
+    """The names :func:`motionlcm_rows` gives its rows."""
+    return [f"MotionLCM-{n}" for n in sorted(TIMESTEPS)]
 
 
 def motionlcm_rows(ctx: EvalContext) -> list[Generator]:

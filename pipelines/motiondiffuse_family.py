@@ -127,6 +127,11 @@ def _load(ctx: EvalContext) -> tuple[MotionDiffuse, NoiseSchedule]:
     return model, schedule
 
 
+def motiondiffuse_row_names(params: dict[str, Any]) -> list[str]:
+    """The names :func:`motiondiffuse_rows` gives its rows: T is ``train_motiondiffuse.num_train_timesteps``."""
+    return [f"MotionDiffuse-{params[TRAIN_STAGE]['num_train_timesteps']}", f"MotionDiffuse-DDIM{DDIM_ROW_STEPS}"]
+
+
 def motiondiffuse_rows(ctx: EvalContext) -> list[Generator]:
     """``MotionDiffuse-<T>`` (DDPM, bounded by ``sample.motiondiffuse_ddpm_items`` and
     ``sample.motiondiffuse_ddpm_replications``) and ``MotionDiffuse-DDIM10`` (one load), both with

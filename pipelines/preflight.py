@@ -6,11 +6,13 @@ A bad value in a late stage's section (``train_motiondiffuse.lr=-1``, ``ray.addr
 otherwise stop ``dvc repro`` only when that stage starts, an hour in. This runs each ``dvc.yaml``
 stage's own command with ``--cfg``: the checks the stage runs when it starts, on ``params.yaml`` with
 the overrides given (as ``make params ARGS=...`` would compose them), nothing read from ``artifacts/``
-and nothing trained. ``make repro`` runs it before ``dvc repro``, ``make params`` after composing;
-``dvc repro`` and ``dvc exp run`` alone do not. It checks params values only: a missing dataset
-folder or a wrong ``$RAY_ADDRESS`` still stops the stage that reads it. Prints every problem once,
-naming its key and the stages it stops, and exits 1 if there is any; prints one line and exits 0
-otherwise.
+and nothing trained. Then the row names that ``evaluate.paraphrase_rows``, ``evaluate.samples.rows``
+and ``speed.rows`` give, against the rows the model registry's families will have (a misspelt name
+there is not an error of any one stage: ``eval_<family>`` would skip it without a word). ``make
+repro`` runs it before ``dvc repro``, ``make params`` after composing; ``dvc repro`` and ``dvc exp
+run`` alone do not. It checks params values only: a missing dataset folder or a wrong
+``$RAY_ADDRESS`` still stops the stage that reads it. Prints every problem once, naming its key and
+the stages it concerns, and exits 1 if there is any; prints one line and exits 0 otherwise.
 """
 
 from __future__ import annotations
@@ -24,10 +26,11 @@ import sys
 import warnings
 from collections.abc import Sequence
 from pathlib import Path
+from typing import Any
 
 import yaml
 
-from pipelines.config import REPO_ROOT
+from pipelines.config import REPO_ROOT, load_params
 
 DVC_YAML = REPO_ROOT / "dvc.yaml"
 
@@ -69,6 +72,37 @@ def stage_problems(stage: str, module: str, arguments: Sequence[str], overrides:
     return []
 
 
+def row_problems(params: dict[str, Any], commands: dict[str, tuple[str, list[str]]]) -> list[str]:
+    """``<stage>: <problem>`` for each row name in ``evaluate.paraphrase_rows``, ``evaluate.samples.rows`` or
+    ``speed.rows`` that no family's rows will have (:meth:`pipelines.registry.ModelFamily.text_row_names`);
+    ``speed.rows`` against the families ``eval_speed`` times. Empty when the params these read are malformed:
+    the stages' own checks name those."""
+    from pipelines.registry import FAMILIES
+    from stages.speed import TIMED
+
+    try:
+        names = {name: family.text_row_names(params) for name, family in FAMILIES.items()}
+        lists = {"evaluate.paraphrase_rows": params["evaluate"]["paraphrase_rows"],
+                 "evaluate.samples.rows": params["evaluate"]["samples"]["rows"],
+                 "speed.rows": params["speed"]["rows"]}
+    except (KeyError, TypeError):
+        return []
+    timed = [row for name in TIMED for row in names[name]]
+    evaluating = [stage for stage, (module, _) in commands.items() if module == "stages.evaluate"]
+    kinds = {"evaluate.paraphrase_rows": ("the rows that answer captions", evaluating),
+             "evaluate.samples.rows": ("the rows that answer captions", evaluating),
+             "speed.rows": (f"the rows of {' and '.join(TIMED)}, which eval_speed times", ["eval_speed"])}
+    problems = []
+    for key, rows in lists.items():
+        what, stages = kinds[key]
+        known = timed if key == "speed.rows" else [row for rows in names.values() for row in rows]
+        unknown = [row for row in rows if row not in known] if isinstance(rows, list) else []
+        if unknown:
+            problem = f"{key}: unknown row(s) {', '.join(map(repr, unknown))} (it takes {what}: {', '.join(known)})"
+            problems += [f"{stage}: {problem}" for stage in stages]
+    return problems
+
+
 def where(stages: Sequence[str], total: int) -> str:
     """The stages a problem stops, or "every stage"."""
     return "every stage" if len(stages) == total else ", ".join(stages)
@@ -84,13 +118,18 @@ def main(argv: Sequence[str] | None = None) -> None:
         sys.exit(f"preflight: unknown option(s) {options}; it takes key=value overrides and --help")
     commands = stage_commands()
     stages_by_problem: dict[str, list[str]] = {}
-    for name, (module, arguments) in commands.items():
-        for line in stage_problems(name, module, arguments, overrides):
-            stage, _, problem = line.partition(": ")
-            stages = stages_by_problem.setdefault(problem, [])
-            stages += [stage] if stage not in stages else []
+    lines = [line for name, (module, arguments) in commands.items()
+             for line in stage_problems(name, module, arguments, overrides)]
+    with contextlib.suppress(ValueError):  # overrides that do not compose: the stages' lines above say why
+        lines += row_problems(load_params(overrides), commands)
+    for line in lines:
+        stage, _, problem = line.partition(": ")
+        stages = stages_by_problem.setdefault(problem, [])
+        stages += [stage] if stage not in stages else []
     if stages_by_problem:
-        sys.exit("\n".join(["preflight: these params would stop the pipeline (fix them in conf/ or the overrides):",
+        heading = ("preflight: these params would stop the pipeline or be ignored by it (fix them in conf/ or the "
+                   "overrides):")
+        sys.exit("\n".join([heading,
                             *(f"  {problem} ({where(stages, len(commands))})"
                               for problem, stages in stages_by_problem.items())]))
     print(f"preflight: the params of all {len(commands)} stages pass their checks")

@@ -1,8 +1,10 @@
 """The model registry: one entry per model family, read by ``evaluate``, ``generate`` and the report.
 
 An entry names the family's module and, in it, the functions that build its evaluation rows
-(``rows(ctx) -> [Generator | Reconstructor]``) and, for ``stages.generate --model <name>``, its
-generator (``generator(ctx, options) -> Generator``). Modules are imported by name when used, so
+(``rows(ctx) -> [Generator | Reconstructor]``), that name its rows answering captions without loading
+a model (``text_rows(params) -> [name]``: what ``evaluate.paraphrase_rows``, ``evaluate.samples.rows``
+and ``speed.rows`` may name, checked by ``pipelines.preflight``) and, for ``stages.generate --model
+<name>``, its generator (``generator(ctx, options) -> Generator``). Modules are imported by name when used, so
 ``stages/evaluate.py`` imports no model code itself: the DVC stage ``eval_<name>`` depends on the
 code of its own family only, and retraining one family re-evaluates only that family.
 
@@ -66,6 +68,8 @@ class ModelFamily:
         module: the module holding the functions below.
         rows: function name in ``module``: ``(EvalContext) -> list of Generator / Reconstructor``, or of
             :class:`pipelines.action_evaluation.ActionGenerator` (scored by the action-to-motion protocol).
+        text_rows: function name in ``module``: ``(params) -> names of the rows that answer captions``, in
+            ``rows``' order, from params alone (no model loaded); None for a family with no such row.
         train_stages: training stages whose outputs the rows load (the eval stage's data deps).
         params: params keys the rows read (beyond ``stages/evaluate.py``'s own).
         generator: function name in ``module``: ``(EvalContext, GenerateOptions) -> Generator``, or None.
@@ -76,6 +80,7 @@ class ModelFamily:
     name: str
     module: str
     rows: str
+    text_rows: str | None = None
     train_stages: tuple[str, ...] = ()
     params: tuple[str, ...] = ()
     generator: str | None = None
@@ -88,6 +93,9 @@ class ModelFamily:
     def build_rows(self, ctx: EvalContext) -> list[Generator | Reconstructor]:
         return self._function(self.rows)(ctx)
 
+    def text_row_names(self, params: dict[str, Any]) -> list[str]:
+        return [] if self.text_rows is None else self._function(self.text_rows)(params)
+
     def build_generator(self, ctx: EvalContext, options: GenerateOptions) -> Generator:
         if self.generator is None:
             raise ValueError(f"model family {self.name!r} has no generator (it is evaluated only)")
@@ -95,29 +103,29 @@ class ModelFamily:
 
 
 FAMILIES: dict[str, ModelFamily] = {family.name: family for family in (
-    ModelFamily("baselines", "pipelines.baselines", "rows",
+    ModelFamily("baselines", "pipelines.baselines", "rows", "row_names",
                 description="Random and Retrieval: real training motions, no model"),
     ModelFamily("vae", "pipelines.mld_family", "vae_rows", train_stages=("train_vae",),
                 description="MLD's motion VAE: reconstruction of the test motions"),
-    ModelFamily("mld", "pipelines.mld_family", "mld_rows", train_stages=("train_vae", "train_mld"),
+    ModelFamily("mld", "pipelines.mld_family", "mld_rows", "mld_row_names", train_stages=("train_vae", "train_mld"),
                 params=("sample.mld_guidance",), generator="mld_generator",
                 description="MLD: latent diffusion, DDIM with classifier-free guidance"),
-    ModelFamily("motionlcm", "pipelines.mld_family", "motionlcm_rows",
+    ModelFamily("motionlcm", "pipelines.mld_family", "motionlcm_rows", "motionlcm_row_names",
                 train_stages=("train_vae", "train_mld", "distill_lcm"), params=("sample.motionlcm_guidance",),
                 generator="motionlcm_generator", description="MotionLCM: the MLD teacher distilled, 1-4 steps"),
-    ModelFamily("motionlcm-control", "pipelines.controlnet_family", "controlnet_rows",
+    ModelFamily("motionlcm-control", "pipelines.controlnet_family", "controlnet_rows", "controlnet_row_names",
                 train_stages=("train_vae", "train_mld", "distill_lcm", "train_controlnet"),
                 params=("sample.motionlcm_guidance", "sample.control_refine_steps", "sample.control_refine_lr",
                         "sample.control_refine_project"),
                 generator="controlnet_generator", controlled=True,
                 description="MotionLCM's ControlNet: one step, following a pelvis trajectory"),
-    ModelFamily("emdm", "pipelines.emdm_family", "emdm_rows", train_stages=("train_emdm",),
+    ModelFamily("emdm", "pipelines.emdm_family", "emdm_rows", "emdm_row_names", train_stages=("train_emdm",),
                 params=("sample.emdm_guidance", "sample.motion_batch"), generator="emdm_generator",
                 description="EMDM: a denoising-diffusion GAN in motion space, 10 steps"),
     ModelFamily("emdm-action", "pipelines.emdm_family", "emdm_action_rows", train_stages=("train_emdm_action",),
                 params=("sample.emdm_action_guidance", "sample.motion_batch"), generator="emdm_action_generator",
                 description="EMDM conditioned on action labels: the action-to-motion protocol"),
-    ModelFamily("motiondiffuse", "pipelines.motiondiffuse_family", "motiondiffuse_rows",
+    ModelFamily("motiondiffuse", "pipelines.motiondiffuse_family", "motiondiffuse_rows", "motiondiffuse_row_names",
                 train_stages=("train_motiondiffuse",),
                 params=("sample.motiondiffuse_guidance", "sample.motiondiffuse_ddpm_items",
                         "sample.motiondiffuse_ddpm_replications", "sample.motion_batch"),

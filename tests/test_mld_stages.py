@@ -176,6 +176,9 @@ def test_evaluation_stages_and_report(trained):
         train(stage, in_process)
     rows = {name: evaluate.run(name, trained) for name in ("real", *FAMILIES)}
     assert list(rows["real"]) == ["Real"] and list(rows["baselines"]) == ["Random", "Retrieval"]
+    # the names preflight checks evaluate.paraphrase_rows, samples.rows and speed.rows against, from params alone
+    assert {name: FAMILIES[name].text_row_names(trained) for name in FAMILIES} == {
+        name: [] if name in ("vae", "emdm-action") else list(rows[name]) for name in FAMILIES}
     assert list(rows["vae"]) == ["VAE"] and list(rows["mld"]) == ["MLD-DDIM50", "MLD-DDIM1", "MLD-DDIM2", "MLD-DDIM4"]
     assert list(rows["motionlcm"]) == ["MotionLCM-1", "MotionLCM-2", "MotionLCM-4"]
     assert list(rows["motionlcm-control"]) == ["MotionLCM-Control", "MotionLCM-Control-5f", "MotionLCM-Control+refine",

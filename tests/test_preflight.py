@@ -62,7 +62,7 @@ def test_each_problem_is_named_once_with_the_stages_it_stops() -> None:
     training = ("train_evaluator, train_vae, train_mld, distill_lcm, train_controlnet, train_emdm, "
                 "train_emdm_action, train_motiondiffuse")
     assert str(exit_info.value.code).splitlines() == [
-        "preflight: these params would stop the pipeline (fix them in conf/ or the overrides):",
+        "preflight: these params would stop the pipeline or be ignored by it (fix them in conf/ or the overrides):",
         f"  ray.num_workers: expected an integer >= 0, got 'abc' ({training})",
         "  train_motiondiffuse.lr: expected a number > 0.0, got -1 (train_motiondiffuse)",
     ]
@@ -105,3 +105,33 @@ def test_attention_heads_that_do_not_divide_the_width_are_named_for_every_model(
         "  train_emdm_action.model.heads: expected an integer >= 1, got 0 (train_emdm_action)",
         "  train_motiondiffuse.model.text_heads: width 96 must be divisible by text_heads 7 (train_motiondiffuse)",
     ]
+
+
+def test_row_names_no_family_has_are_named_before_the_pipeline_runs() -> None:
+    """A misspelt row in ``evaluate.paraphrase_rows`` or ``evaluate.samples.rows`` passes every stage's checks
+    and was skipped without a word; a row ``eval_speed`` does not time stopped it only after training. The
+    names come from the params: with ``train_emdm.num_steps=5`` the row is ``EMDM-5``, so ``EMDM-10`` is
+    unknown."""
+    evaluating = ("eval_real, eval_baselines, eval_vae, eval_mld, eval_motionlcm, eval_motionlcm-control, "
+                  "eval_emdm, eval_emdm-action, eval_motiondiffuse")
+    captions = ("Random, Retrieval, MLD-DDIM50, MLD-DDIM1, MLD-DDIM2, MLD-DDIM4, MotionLCM-1, MotionLCM-2, "
+                "MotionLCM-4, MotionLCM-Control, MotionLCM-Control-5f, MotionLCM-Control+refine, "
+                "MotionLCM-1-uncontrolled, EMDM-{t}, MotionDiffuse-1000, MotionDiffuse-DDIM10")
+    with pytest.raises(SystemExit) as exit_info:
+        preflight.main(["evaluate.paraphrase_rows=[MLD-DDIM5O,MLD-DDIM50]", "evaluate.samples.rows=[VAE]",
+                        "speed.rows=[EMDM-10,MLD-DDIM50]"])
+    assert str(exit_info.value.code).splitlines()[1:] == [
+        f"  evaluate.paraphrase_rows: unknown row(s) 'MLD-DDIM5O' (it takes the rows that answer captions: "
+        f"{captions.format(t=10)}) ({evaluating})",
+        f"  evaluate.samples.rows: unknown row(s) 'VAE' (it takes the rows that answer captions: "
+        f"{captions.format(t=10)}) ({evaluating})",
+        "  speed.rows: unknown row(s) 'MLD-DDIM50' (it takes the rows of emdm and motiondiffuse, which eval_speed "
+        "times: EMDM-10, MotionDiffuse-1000, MotionDiffuse-DDIM10) (eval_speed)",
+    ]
+    with pytest.raises(SystemExit) as exit_info:
+        preflight.main(["train_emdm.num_steps=5"])
+    assert [line.split(" (it takes")[0] for line in str(exit_info.value.code).splitlines()[1:]] == [
+        "  evaluate.paraphrase_rows: unknown row(s) 'EMDM-10'", "  evaluate.samples.rows: unknown row(s) 'EMDM-10'",
+        "  speed.rows: unknown row(s) 'EMDM-10'"]
+    preflight.main(["train_emdm.num_steps=5", "evaluate.paraphrase_rows=[EMDM-5]", "evaluate.samples.rows=[EMDM-5]",
+                    "speed.rows=[EMDM-5,MotionDiffuse-1000]"])
