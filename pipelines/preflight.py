@@ -31,6 +31,8 @@ from typing import Any
 import yaml
 
 from pipelines.config import REPO_ROOT, load_params
+from pipelines.registry import FAMILIES
+from pipelines.speed import TIMED
 
 DVC_YAML = REPO_ROOT / "dvc.yaml"
 
@@ -77,9 +79,6 @@ def row_problems(params: dict[str, Any], commands: dict[str, tuple[str, list[str
     ``speed.rows`` that no family's rows will have (:meth:`pipelines.registry.ModelFamily.text_row_names`);
     ``speed.rows`` against the families ``eval_speed`` times. Empty when the params these read are malformed:
     the stages' own checks name those."""
-    from pipelines.registry import FAMILIES
-    from stages.speed import TIMED
-
     try:
         names = {name: family.text_row_names(params) for name, family in FAMILIES.items()}
         lists = {"evaluate.paraphrase_rows": params["evaluate"]["paraphrase_rows"],

@@ -20,6 +20,9 @@ import torch
 from models.generator import ControlledGenerator, Generator
 from pipelines.evaluation import Draw, EvalConfig, control_hint, time_generator
 
+#: The model families whose rows stage ``eval_speed`` times (their modules and params are its DVC deps).
+TIMED = ("emdm", "motiondiffuse")
+
 
 def parameter_count(row: Generator) -> int:
     """The parameters of the networks a row holds (the ``torch.nn.Module`` attributes of the row object,

@@ -11,6 +11,8 @@
   ``evaluate.paraphrase_rows``, whose twins ``<row>@paraphrase`` answer held-out paraphrases
   (:mod:`pipelines.paraphrase`). A metric that does not apply to a row is absent.
 - ``samples/<row>_<k>.gif``: the fixed prompts of ``evaluate.samples`` for the chosen rows.
+- ``protocol.json``: the evaluation settings and the number of test items the rows were scored with
+  (:mod:`pipelines.tables`); the report refuses a folder whose protocol is not ``real``'s.
 
 A family whose rows are action-conditioned (:class:`pipelines.action_evaluation.ActionGenerator`)
 is scored by the action-to-motion protocol instead (``Real-action`` and its rows: recogniser
@@ -27,7 +29,7 @@ from __future__ import annotations
 import json
 import sys
 from collections.abc import Sequence
-from dataclasses import fields
+from dataclasses import asdict, fields
 from pathlib import Path
 from typing import Any
 
@@ -53,6 +55,7 @@ from pipelines.evaluation import (
 )
 from pipelines.paraphrase import semantics
 from pipelines.registry import FAMILIES, EvalContext, family
+from pipelines.tables import write_table
 
 REAL = "real"
 #: Params every evaluation stage reads; a family's stage also reads its registry entry's ``params``.
@@ -111,12 +114,14 @@ def run(name: str, params: dict[str, Any]) -> dict[str, dict[str, float]]:
     cfg = eval_config(params["evaluate"])
     out = artifacts / "eval" / name
     check_output(out, owner="evaluate")
+    test = ctx.store.split("test")
+    settings = asdict(cfg)  # protocol.json, with len(test): the report merges tables of one protocol only
     untrained = [] if name == REAL else [(stage, reason) for stage in family(name).train_stages
                                          if (reason := skipped(artifacts / stage))]
     if untrained:  # e.g. the action stages on a dataset without action labels
         print(f"eval_{name}: no rows: {untrained[0][0]} trained nothing: {untrained[0][1]}")
         with atomic_directory(out, owner="evaluate") as tmp:
-            (tmp / "metrics.json").write_text("{}\n")
+            write_table(tmp, {}, settings, len(test))
         return {}
     rows = [] if name == REAL else family(name).build_rows(ctx)
     actions = [row for row in rows if isinstance(row, ActionGenerator)]
@@ -131,9 +136,8 @@ def run(name: str, params: dict[str, Any]) -> dict[str, dict[str, float]]:
         table = evaluate_action_rows(actions, ctx.store, recogniser, cfg.replications, cfg.seed,
                                      unit_length=cfg.unit_length)
         with atomic_directory(out, owner="evaluate") as tmp:
-            (tmp / "metrics.json").write_text(json.dumps(table, indent=2) + "\n")
+            write_table(tmp, table, settings, len(test))
         return table
-    test = ctx.store.split("test")
     embedder = load_evaluator(ctx.trained("train_evaluator"))
     skeleton = get_skeleton(params["data"]["skeleton"])
     sem = None
@@ -149,13 +153,13 @@ def run(name: str, params: dict[str, Any]) -> dict[str, dict[str, float]]:
         with atomic_directory(out, owner="evaluate") as tmp:
             save_references(tmp / REFERENCES, refs)
             (tmp / "meta.json").write_text(json.dumps(meta, indent=2) + "\n")
-            (tmp / "metrics.json").write_text(json.dumps(table, indent=2) + "\n")
+            write_table(tmp, table, settings, len(test))
         return table
     refs = load_references(artifacts / "eval" / REAL / REFERENCES, test, cfg)
     table = evaluate(refs, test, ctx.store.mean, ctx.store.std, embedder, skeleton, cfg, generators, reconstructors,
                      semantics=sem)
     with atomic_directory(out, owner="evaluate") as tmp:
-        (tmp / "metrics.json").write_text(json.dumps(table, indent=2) + "\n")
+        write_table(tmp, table, settings, len(test))
         render_samples(generators, ctx, tmp / "samples")
     return table
 

@@ -7,13 +7,13 @@
 ``summary.json`` (its headline figures, the DVC metrics file), ``report.md`` (the
 paper-style table, also printed), ``fid_vs_time.png``, ``samples/`` (every family's rendered sample
 animations) and ``report.html`` (the tables, the plot and the samples in one self-contained page that
-opens offline). Each file is replaced atomically.
+opens offline). Each file is replaced atomically. It refuses folders scored with other evaluation
+settings than ``artifacts/eval/real/`` (their ``protocol.json``, :mod:`pipelines.tables`).
 """
 
 from __future__ import annotations
 
 import json
-import math
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -23,6 +23,7 @@ from pipelines.cli import artifacts_dir, run_main
 from pipelines.registry import FAMILIES
 from pipelines.report import merge_tables, plot_fid_vs_time, report_markdown
 from pipelines.report_html import report_html
+from pipelines.tables import check_protocols, read_json, read_table
 
 PARAMS = ("paths.artifacts",)
 SOURCES = ("real", *FAMILIES)
@@ -37,30 +38,6 @@ OUTPUTS = ("metrics.json", "summary.json", "report.md", "fid_vs_time.png", "repo
 SUMMARY = (("Real", "R_precision_top3"), ("VAE", "FID"), ("MLD-DDIM50", "FID"), ("MotionLCM-1", "FID"),
            ("MotionLCM-Control", "FID"), ("EMDM-10", "FID"), ("MotionDiffuse-DDIM10", "FID"),
            ("EMDM-action", "Accuracy"), ("EMDM-action", "FID"))
-
-
-def _read_json(path: Path) -> Any:
-    try:
-        return json.loads(path.read_text(encoding="utf-8"))
-    except FileNotFoundError:
-        stage = f"eval_{path.parent.name}"
-        raise FileNotFoundError(f"{path} is missing: run `dvc repro {stage}` first") from None
-    except json.JSONDecodeError as err:
-        raise ValueError(f"{path}: not valid JSON ({err})") from err
-
-
-def _read_table(path: Path) -> dict[str, dict[str, float]]:
-    """An evaluation stage's ``metrics.json``: ``{row: {metric: finite number}}``; ValueError naming the file
-    and the first bad entry otherwise (a row dropped or a NaN written into summary.json, without a word)."""
-    table = _read_json(path)
-    again = f"run `dvc repro eval_{path.parent.name}` to write it again"
-    if not isinstance(table, dict) or not all(isinstance(metrics, dict) for metrics in table.values()):
-        raise ValueError(f"{path}: expected {{row: {{metric: number}}}}; {again}")
-    for row, metrics in table.items():
-        for key, value in metrics.items():
-            if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value):
-                raise ValueError(f"{path}: {row}: {key} is {value!r}, not a finite number; {again}")
-    return table
 
 
 def _read_samples(eval_dir: Path) -> list[tuple[str, bytes]]:
@@ -95,9 +72,11 @@ def run(params: dict[str, Any]) -> dict[str, dict[str, float]]:
     for name in OUTPUTS:  # checked before any is replaced, so that a failure leaves the old report whole
         if (eval_dir / name).is_dir():
             raise ValueError(f"{eval_dir / name} is a directory, where the report writes a file; move it away")
-    table = merge_tables([_read_table(eval_dir / name / "metrics.json") for name in SOURCES])
-    meta = _read_json(eval_dir / "real" / "meta.json")
-    speed = _read_table(eval_dir / SPEED / "metrics.json")
+    folders = [eval_dir / name for name in (*SOURCES, SPEED)]
+    tables = [read_table(folder) for folder in folders]
+    check_protocols(folders[0], folders[1:])
+    table, speed = merge_tables(tables[:-1]), tables[-1]
+    meta = read_json(eval_dir / "real" / "meta.json")
     samples = _read_samples(eval_dir)
     report = report_markdown(table, meta, speed)
     replace_file(eval_dir / "metrics.json", lambda p: p.write_text(json.dumps(table, indent=2) + "\n"))

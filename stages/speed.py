@@ -8,14 +8,15 @@ test split, ``evaluate.timing_sentences`` and ``timing_seconds``), in ``speed.ro
 order alternates. Their family stages time each row in its own run, hours apart; the ratio of two
 rows is measured here. Writes, atomically, ``artifacts/eval/speed/metrics.json``:
 ``{row: {ms_per_frame, AITS_s, NFE, params_M, speedup, rounds}}`` (``speedup``: the slowest row's
-ms/frame over the row's), which the report prints as its speed table. If a family's training stage
+ms/frame over the row's), which the report prints as its speed table, and ``protocol.json``
+(:mod:`pipelines.tables`). If a family's training stage
 trained nothing, the table is empty.
 """
 
 from __future__ import annotations
 
-import json
 from collections.abc import Sequence
+from dataclasses import asdict
 from typing import Any
 
 import numpy as np
@@ -28,10 +29,9 @@ from pipelines.cli import artifacts_dir, repo_path, run_main
 from pipelines.config import check_fields, check_keys, check_number, check_type
 from pipelines.evaluation import EvalConfig, check_protocol, draw
 from pipelines.registry import FAMILIES, EvalContext
-from pipelines.speed import side_by_side
+from pipelines.speed import TIMED, side_by_side
+from pipelines.tables import write_table
 
-#: The families whose rows this stage may time (their modules and params are the stage's DVC deps).
-TIMED = ("emdm", "motiondiffuse")
 PARAMS = ("evaluate", "features.out", "data.skeleton", "paths.artifacts", "speed",
           *dict.fromkeys(key for name in TIMED for key in FAMILIES[name].params))
 OUT = "speed"
@@ -64,11 +64,12 @@ def run(params: dict[str, Any]) -> dict[str, dict[str, float]]:
     check_output(out, owner="speed")
     untrained = [stage for name in TIMED for stage in FAMILIES[name].train_stages if skipped(artifacts / stage)]
     table: dict[str, dict[str, float]] = {}
+    cfg = EvalConfig(**timing_section(params))
+    ctx = EvalContext(params, artifacts, repo_path(params, "features.out"))
+    test = ctx.store.split("test")
     if untrained:
         print(f"eval_speed: no rows: {untrained[0]} trained nothing")
     else:
-        cfg = EvalConfig(**timing_section(params))
-        ctx = EvalContext(params, artifacts, repo_path(params, "features.out"))
         wanted = params["speed"]["rows"]
         built = {row.name: row for name in TIMED for row in FAMILIES[name].build_rows(ctx)
                  if isinstance(row, Generator)}
@@ -76,11 +77,11 @@ def run(params: dict[str, Any]) -> dict[str, dict[str, float]]:
         if missing:
             raise ValueError(f"speed.rows: no generator row(s) {missing} in the families {list(TIMED)} "
                              f"(their rows: {sorted(built)})")
-        d = draw(ctx.store.split("test"), np.random.default_rng([cfg.seed, cfg.replications]), cfg.unit_length)
+        d = draw(test, np.random.default_rng([cfg.seed, cfg.replications]), cfg.unit_length)
         table = side_by_side([built[name] for name in wanted], d, cfg,
                              get_skeleton(params["data"]["skeleton"]).joints_num, params["speed"]["rounds"])
     with atomic_directory(out, owner="speed") as tmp:
-        (tmp / "metrics.json").write_text(json.dumps(table, indent=2) + "\n")
+        write_table(tmp, table, asdict(cfg), len(test))
     return table
 
 

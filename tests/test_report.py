@@ -252,3 +252,23 @@ def test_a_folder_where_the_report_writes_a_file_stops_it_before_any_write(artif
     with pytest.raises(ValueError, match=r"report.html is a directory, where the report writes a file"):
         report_stage.run({"paths": {"artifacts": str(artifacts)}})
     assert not (artifacts / "eval" / "metrics.json").exists() and not (artifacts / "eval" / "report.md").exists()
+
+
+def test_a_family_scored_with_other_settings_than_real_is_refused(artifacts: Path) -> None:
+    """``python -m stages.evaluate emdm evaluate.mm_times=2`` by hand, or Real scored again on another split:
+    the report put both protocols' figures in one table. It names the folder, each setting that differs
+    and the command; the old report stays."""
+    report_stage.run({"paths": {"artifacts": str(artifacts)}})
+    before = {name: (artifacts / "eval" / name).read_bytes() for name in report_stage.OUTPUTS}
+    path = artifacts / "eval" / "emdm" / "protocol.json"
+    protocol = json.loads(path.read_text())
+    path.write_text(json.dumps(protocol | {"mm_times": 2, "test_items": 100}))
+    with pytest.raises(ValueError) as err:
+        report_stage.run({"paths": {"artifacts": str(artifacts)}})
+    assert str(err.value) == (f"{path}: scored with another protocol than real (test_items 100 against 452; mm_times "
+                              "2 against 10): run `dvc repro eval_emdm` to score it again with the same settings")
+    assert {name: (artifacts / "eval" / name).read_bytes() for name in report_stage.OUTPUTS} == before
+    path.write_text(json.dumps(protocol))
+    (artifacts / "eval" / "speed" / "protocol.json").unlink()  # written before the stages wrote their protocol
+    with pytest.raises(FileNotFoundError, match=r"speed/protocol.json is missing: run `dvc repro eval_speed` first"):
+        report_stage.run({"paths": {"artifacts": str(artifacts)}})
