@@ -21,15 +21,25 @@ import torch
 
 #: MotionLCM's joints for spatial control (HumanML3D ids): pelvis, left/right foot, head, left/right wrist.
 CONTROL_JOINTS = {"pelvis": 0, "left_foot": 10, "right_foot": 11, "head": 15, "left_wrist": 20, "right_wrist": 21}
+#: The same body points on KIT-ML's 21 joints: the root, each leg's and arm's last joint (l_toe, r_toe,
+#: l_wrist, r_wrist) and the spine's (bun), as HumanML3D's are the last of its chains.
+KIT_CONTROL_JOINTS = {"pelvis": 0, "left_foot": 15, "right_foot": 20, "head": 4, "left_wrist": 7, "right_wrist": 10}
+#: The tables by the skeleton's joint count (HumanML3D 22, KIT-ML 21).
+CONTROL_JOINTS_BY_COUNT = {22: CONTROL_JOINTS, 21: KIT_CONTROL_JOINTS}
 TEST_DENSITIES = ("100%", "25%", "5", "2", "1")
 
 
-def joint_ids(names: Sequence[str]) -> tuple[int, ...]:
-    """Joint names of :data:`CONTROL_JOINTS` -> their ids; ValueError naming an unknown one."""
-    unknown = [n for n in names if n not in CONTROL_JOINTS]
+def joint_ids(names: Sequence[str], joints_num: int = 22) -> tuple[int, ...]:
+    """Joint names of :data:`CONTROL_JOINTS` -> their ids on the skeleton of ``joints_num`` joints; ValueError
+    naming an unknown name or joint count."""
+    if joints_num not in CONTROL_JOINTS_BY_COUNT:
+        raise ValueError(f"no control joints for a skeleton of {joints_num} joints (known: HumanML3D's 22, KIT-ML's "
+                         f"21)")
+    table = CONTROL_JOINTS_BY_COUNT[joints_num]
+    unknown = [n for n in names if n not in table]
     if unknown or not names:
-        raise ValueError(f"control joints {list(names)!r}: choose one or more of {', '.join(CONTROL_JOINTS)}")
-    return tuple(CONTROL_JOINTS[n] for n in names)
+        raise ValueError(f"control joints {list(names)!r}: choose one or more of {', '.join(table)}")
+    return tuple(table[n] for n in names)
 
 
 def keyframe_count(length: int, density: str) -> int:

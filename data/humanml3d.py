@@ -41,6 +41,7 @@ HumanML3D data.
 from __future__ import annotations
 
 import math
+import os
 import re
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field, replace
@@ -380,6 +381,16 @@ def load_npy(path: Path) -> np.ndarray:
     """
     with open(path, "rb") as f:
         try:
+            version = np.lib.format.read_magic(f)
+            read_header = (np.lib.format.read_array_header_1_0 if version == (1, 0)
+                           else np.lib.format.read_array_header_2_0)
+            shape, _, dtype = read_header(f)
+            declared = math.prod(shape) * dtype.itemsize  # checked before read_array allocates it
+            left = os.fstat(f.fileno()).st_size - f.tell()
+            if not dtype.hasobject and declared > left:
+                raise ValueError(f"truncated: the header declares {declared} bytes of data (shape {shape}, "
+                                 f"{dtype}), the file holds {left}")
+            f.seek(0)
             arr = np.lib.format.read_array(f, allow_pickle=False)
         except EOFError as exc:
             raise ValueError(f"truncated: {exc}") from None

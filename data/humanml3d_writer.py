@@ -106,9 +106,14 @@ def _writearray_problem(kind: str, arr: object, skeleton: Skeleton | None, dims:
 
 
 def _split_problems(splits: Mapping[str, Sequence[str]], written: set[str]) -> list[Problem]:
-    """Ids in the splits that are not written clips, and ids repeated within a split."""
+    """Ids in the splits that are not written clips, ids repeated within a split, and ids in two splits (the
+    reader refuses a clip in two splits: it leaks between training and test)."""
     problems = []
+    first_split: dict[str, str] = {}
     for split, ids in splits.items():
+        for clip_id in dict.fromkeys(ids):
+            if first_split.setdefault(clip_id, split) != split:
+                problems.append(Problem(f"{split}.txt", f"id {clip_id!r} is also in {first_split[clip_id]}.txt"))
         counts: dict[str, int] = {}
         for clip_id in ids:
             counts[clip_id] = counts.get(clip_id, 0) + 1

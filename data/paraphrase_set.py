@@ -27,12 +27,18 @@ class Item(Protocol):
     def length(self) -> int: ...
 
 
-def _item_captions(captions: Sequence[Caption], item: Item, fps: float) -> list[str]:
-    """The texts of ``captions`` (one clip's paraphrases) that describe ``item``."""
+def _item_captions(captions: Sequence[Caption], item: Item, fps: float, clip_end: int) -> list[str]:
+    """The texts of ``captions`` (one clip's paraphrases) that describe ``item``.
+
+    A span caption's frames are cut at ``clip_end``, the last frame the clip's items reach, as the
+    reader cuts a ``texts/`` span that runs past the clip's end: a paraphrase copied from such a caption
+    then names the item it was cut to.
+    """
     if item.item_id == item.clip_id:
         return [c.text for c in captions if c.is_whole_clip]
     span = (item.start, item.start + item.length)
-    return [c.text for c in captions if not c.is_whole_clip and (int(c.start * fps), int(c.end * fps)) == span]
+    return [c.text for c in captions
+            if not c.is_whole_clip and (int(c.start * fps), min(int(c.end * fps), clip_end)) == span]
 
 
 def read_paraphrases(root: Path, items: Sequence[Item], fps: float) -> dict[str, list[str]] | None:
@@ -47,12 +53,15 @@ def read_paraphrases(root: Path, items: Sequence[Item], fps: float) -> dict[str,
     by_clip: dict[str, list[Caption]] = {}
     problems: list[Problem] = []
     out: dict[str, list[str]] = {}
+    clip_end: dict[str, int] = {}
+    for item in items:
+        clip_end[item.clip_id] = max(clip_end.get(item.clip_id, 0), item.start + item.length)
     for item in items:
         path = folder / f"{item.clip_id}.txt"
         if item.clip_id not in by_clip:
             by_clip[item.clip_id], clip_problems = parse_captions(path)
             problems += clip_problems
-        texts = _item_captions(by_clip[item.clip_id], item, fps)
+        texts = _item_captions(by_clip[item.clip_id], item, fps, clip_end[item.clip_id])
         if texts:
             out[item.item_id] = texts
         elif path.is_file():

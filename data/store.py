@@ -50,6 +50,9 @@ class StoredItem:
         return int(self.features.shape[0])
 
 
+#: The columns :func:`read_split` reads (:func:`write_split` writes them and ``length``).
+COLUMNS = ("item_id", "clip_id", "action", "start", "features", "captions", "tokens", "text_pooled", "text_tokens")
+
 def _fixed_rows(rows: Sequence[np.ndarray], width: int, dtype: pa.DataType) -> pa.Array:
     """list<fixed_size_list<dtype, width>> from a sequence of (n_i, width) arrays."""
     np_dtype = np.float16 if dtype == pa.float16() else np.float32
@@ -113,6 +116,9 @@ def read_split(path: Path) -> list[StoredItem]:
         table = pq.read_table(path)
     except (OSError, pa.ArrowException) as err:
         raise ValueError(f"{path}: not a readable Parquet file ({err})") from err
+    missing = [name for name in COLUMNS if name not in table.column_names]
+    if missing:
+        raise ValueError(f"{path}: not a feature-store split: no column(s) {', '.join(missing)}")
     features = _split_rows(table["features"], np.float32)
     pooled = _split_rows(table["text_pooled"], np.float32)
     nested = table["text_tokens"].combine_chunks()

@@ -49,6 +49,7 @@ from data.synthetic_text import describe, mirror_caption
 SPLITS = ("train", "val", "test")
 CARRIED = ("wave", "raise_arms", "clap", "punch", "look_around")  # upper-body actions a carrier can take
 _SPLIT_STREAM = 7_777_777  # SeedSequence key of the split shuffle (motions use their index)
+PROGRAM_TRIES = 100  # draws of a motion's actions before its frame budget is called too small
 
 
 @dataclass(frozen=True)
@@ -92,12 +93,25 @@ class SyntheticConfig:
     def __post_init__(self) -> None:
         if self.num_motions < 1:
             raise ValueError("synthetic.num_motions must be >= 1")
+        for key in ("mix_prob", "span_prob", "seated_start"):
+            if not 0.0 <= getattr(self, key) <= 1.0:
+                raise ValueError(f"synthetic.{key}: expected a probability in [0, 1], got {getattr(self, key)!r}")
+        if not 0.0 < self.pelvis_height[0] <= self.pelvis_height[1]:
+            raise ValueError(f"synthetic.pelvis_height must be [min, max] metres with 0 < min <= max, got "
+                             f"{list(self.pelvis_height)}")
+        if self.style < 0 or self.previews < 0 or self.workers < 1:
+            raise ValueError(f"synthetic: need style >= 0, previews >= 0 and workers >= 1, got {self.style!r}, "
+                             f"{self.previews!r} and {self.workers!r}")
         if not 2 <= self.min_joint_frames < self.max_joint_frames:
             raise ValueError("synthetic: need 2 <= min_joint_frames < max_joint_frames")
-        if set(self.splits) != set(SPLITS) or abs(sum(self.splits.values()) - 1.0) > 1e-6:
-            raise ValueError(f"synthetic.splits must give fractions of {SPLITS} summing to 1")
-        if not self.actions_per_motion or abs(sum(self.actions_per_motion) - 1.0) > 1e-6:
-            raise ValueError("synthetic.actions_per_motion must be probabilities summing to 1")
+        if (set(self.splits) != set(SPLITS) or not all(0.0 <= f <= 1.0 for f in self.splits.values())
+                or abs(sum(self.splits.values()) - 1.0) > 1e-6):
+            raise ValueError(f"synthetic.splits must give fractions in [0, 1] of {SPLITS} summing to 1, got "
+                             f"{dict(self.splits)}")
+        if (not self.actions_per_motion or min(self.actions_per_motion) < 0
+                or abs(sum(self.actions_per_motion) - 1.0) > 1e-6):
+            raise ValueError(f"synthetic.actions_per_motion must be probabilities (>= 0) summing to 1, got "
+                             f"{list(self.actions_per_motion)}")
         lo, hi = self.captions_per_motion
         if not 1 <= lo <= hi:
             raise ValueError("synthetic.captions_per_motion must be [min, max] with 1 <= min <= max")
@@ -222,9 +236,15 @@ def generate_motion(seed: int, index: int, config: SyntheticConfig) -> Synthetic
     state = initial_state(body, float(rng.uniform(-np.pi, np.pi)), posture)
     lead_in = build_idle(body, state, {"duration": float(rng.uniform(0.2, 0.6))})
     tail = int(rng.integers(4, 12))
-    segments: list[Segment] = []
-    while not segments:
-        segments, pieces = _program(rng, body, state, config, config.max_joint_frames - len(lead_in.plan) - tail)
+    budget = config.max_joint_frames - len(lead_in.plan) - tail
+    for _ in range(PROGRAM_TRIES):
+        segments, pieces = _program(rng, body, state, config, budget)
+        if segments:
+            break
+    else:
+        raise ValueError(f"synthetic.max_joint_frames: {config.max_joint_frames} frames left no room for an action "
+                         f"after motion {index}'s lead-in and tail in {PROGRAM_TRIES} tries; raise it "
+                         f"(the default is {SyntheticConfig.max_joint_frames})")
     end_state = pieces[-1].end
     length = len(lead_in.plan) + sum(len(p.plan) for p in pieces)
     tail = max(tail, config.min_joint_frames - length)
@@ -297,12 +317,23 @@ def generate(config: SyntheticConfig, seed: int) -> Iterator[SyntheticMotion]:
             yield from motions
 
 
-def make_splits(num_motions: int, fractions: Mapping[str, float], seed: int, mirror: bool
-                ) -> dict[str, list[str]]:
-    """Split ids by a seeded shuffle of the originals; a mirror joins its original's split."""
-    order = np.random.default_rng(np.random.SeedSequence([int(seed), _SPLIT_STREAM])).permutation(num_motions)
+def split_counts(num_motions: int, fractions: Mapping[str, float]) -> dict[str, int]:
+    """Original motions per split: val and test rounded, train the rest."""
     n_val = int(round(fractions["val"] * num_motions))
     n_test = int(round(fractions["test"] * num_motions))
+    return {"train": num_motions - n_val - n_test, "val": n_val, "test": n_test}
+
+
+def make_splits(num_motions: int, fractions: Mapping[str, float], seed: int, mirror: bool
+                ) -> dict[str, list[str]]:
+    """Split ids by a seeded shuffle of the originals; a mirror joins its original's split. ValueError when a
+    split would be empty."""
+    counts = split_counts(num_motions, fractions)
+    if min(counts.values()) < 1:  # extract_features refuses an empty split
+        raise ValueError(f"synthetic.splits: {dict(fractions)} of synthetic.num_motions={num_motions} leaves a "
+                         f"split empty ({counts}); every split needs a motion")
+    order = np.random.default_rng(np.random.SeedSequence([int(seed), _SPLIT_STREAM])).permutation(num_motions)
+    n_val, n_test = counts["val"], counts["test"]
     parts = {"val": order[:n_val], "test": order[n_val : n_val + n_test], "train": order[n_val + n_test :]}
     splits = {}
     for name in SPLITS:

@@ -159,9 +159,16 @@ def build_items(data: SplitData, feats: dict[str, np.ndarray], text: dict[str, t
     return rows
 
 
+#: Keys that do not change what the store holds: where it goes, how many processes extract it (the
+#: clips' features do not depend on it), and whether bad input stops the stage (a store is written
+#: only when it holds every clip that reads, in both modes).
+NOT_CONTENT = {"features": ("out", "workers"), "data": ("on_error",)}
+
+
 def config_hash(params: dict[str, Any]) -> str:
-    """Hash of everything that determines the store's content."""
-    relevant = {"data": params["data"], "features": params["features"], "version": FEATURE_VERSION}
+    """Hash of everything that determines the store's content (``NOT_CONTENT`` left out)."""
+    relevant = {section: {key: value for key, value in params[section].items() if key not in NOT_CONTENT[section]}
+                for section in NOT_CONTENT} | {"version": FEATURE_VERSION}
     return hashlib.sha256(json.dumps(relevant, sort_keys=True).encode()).hexdigest()[:16]
 
 

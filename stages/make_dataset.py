@@ -86,10 +86,10 @@ def build_dataset(root: Path, config: SyntheticConfig, seed: int) -> dict:
     """Generate, write, preview and describe the dataset in ``root`` atomically; returns the stats."""
     check_output(root, owner="make_dataset")
     start = time.perf_counter()
+    splits = make_splits(config.num_motions, config.splits, seed, config.mirror)
     total = config.num_motions * (2 if config.mirror else 1)
     motions = list(tqdm(generate(config, seed), total=total, desc="make_dataset", unit="motion"))
     generated = time.perf_counter()
-    splits = make_splits(config.num_motions, config.splits, seed, config.mirror)
     stats = dataset_stats(motions)
     with atomic_directory(root, owner="make_dataset") as tmp:
         write_dataset(tmp, (m.clip() for m in motions), splits, skeleton=HUMANML3D)
@@ -99,7 +99,8 @@ def build_dataset(root: Path, config: SyntheticConfig, seed: int) -> dict:
         if config.previews > 0:
             write_previews(tmp / "preview", motions, config.previews)
         (tmp / "stats.json").write_text(json.dumps(stats, indent=2) + "\n", encoding="utf-8")
-    print(f"make_dataset: {total} motions in {generated - start:.1f}s, written with previews in "
+    written = "written with previews" if config.previews else "written"
+    print(f"make_dataset: {total} motions in {generated - start:.1f}s, {written} in "
           f"{time.perf_counter() - start:.1f}s -> {root}")
     return stats
 
@@ -111,7 +112,8 @@ OUT = "dataset"
 def check_section(params: dict[str, Any]) -> None:
     """The ``synthetic`` section checked before any work: types (SyntheticConfig's fields), then its ranges."""
     check_fields(params["synthetic"], SyntheticConfig, "synthetic")
-    SyntheticConfig.from_params(params["synthetic"])
+    config = SyntheticConfig.from_params(params["synthetic"])
+    make_splits(config.num_motions, config.splits, 0, mirror=False)  # no split left empty
 
 
 def run(params: dict[str, Any]) -> dict[str, Any]:

@@ -101,8 +101,9 @@ def stage_config(params: dict[str, Any]) -> dict[str, Any]:
     student_dir = artifacts_dir(params) / "distill_lcm"
     student = load_final_model(student_dir)["config"]
     mean, std = hint_statistics(Path(student["features_dir"]))
-    control = ControlConfig(joints_num=len(mean) // 3, hint_mean=mean, hint_std=std,
-                            train_joints=joint_ids(cfg["train_joints"]), **cfg["encoder"])
+    joints_num = len(mean) // 3
+    control = ControlConfig(joints_num=joints_num, hint_mean=mean, hint_std=std,
+                            train_joints=joint_ids(cfg["train_joints"], joints_num), **cfg["encoder"])
     return {
         "student_dir": str(student_dir), "teacher_dir": student["teacher_dir"],
         **{key: student[key] for key in ("features_dir", "vae_dir", "mean", "std", "crop_frames", "max_text_tokens",

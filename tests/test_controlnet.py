@@ -12,6 +12,7 @@ from torch import nn
 
 from data.control import evaluation_mask, joint_ids, keyframe_count, training_mask
 from data.features import recover_from_ric
+from data.skeleton import HUMANML3D, KIT
 from models.controlnet import (
     ControlConfig,
     ControlledStudent,
@@ -164,6 +165,13 @@ def test_keyframe_counts_and_evaluation_masks():
         assert mask.sum() == 2 * sum(counts)
         assert not any(mask[b, n:].any() for b, n in enumerate(lengths))  # padded frames never count
     assert joint_ids(["pelvis", "right_wrist"]) == (0, 21)
+    # KIT-ML's ids name the same body points (HumanML3D's ids there were a hip, a toe and out of range)
+    kit = joint_ids(["pelvis", "left_foot", "right_foot", "head", "left_wrist", "right_wrist"], KIT.joints_num)
+    assert [KIT.joint_names[j] for j in kit] == ["root", "l_toe", "r_toe", "bun", "l_wrist", "r_wrist"]
+    assert [HUMANML3D.joint_names[j] for j in joint_ids(["left_foot", "head", "left_wrist"])] == [
+        "left_foot", "head", "left_wrist"]
+    with pytest.raises(ValueError, match="no control joints for a skeleton of 17 joints"):
+        joint_ids(["pelvis"], 17)
     with pytest.raises(ValueError, match="control joints"):
         joint_ids(["tail"])
 

@@ -23,7 +23,7 @@ from data.skeleton import HUMANML3D
 from data.store import StoredItem, read_split, write_split
 from pipelines.config import compose_params
 from pipelines.feature_store import FeatureStore
-from stages.extract_features import fail_summary, filter_summary, main, run
+from stages.extract_features import config_hash, fail_summary, filter_summary, main, run
 
 FIXTURE = Path(__file__).parent / "fixtures" / "humanml3d" / "new_joints_012314.npy"
 REPO = Path(__file__).resolve().parent.parent
@@ -403,3 +403,14 @@ def test_extract_features_command_refuses_an_id_in_two_splits(dataset, tmp_path)
                     f"{root}/train.txt:2: a clip in two splits leaks between them")
     assert all(line.startswith("features:") for line in progress if line)
     assert _tree(out) == before
+
+
+def test_the_store_hash_leaves_out_settings_that_do_not_change_its_content() -> None:
+    """``features.workers`` changed meta.json's hash, and with it every training stage's input, for a store
+    whose every other byte was the same; the output folder and ``data.on_error`` are not content either."""
+    params = compose_params()
+    same = [{"features": params["features"] | {"workers": 7, "out": "/elsewhere"}},
+            {"data": params["data"] | {"on_error": "fail" if params["data"]["on_error"] == "skip" else "skip"}}]
+    assert all(config_hash(params | change) == config_hash(params) for change in same)
+    other = [{"features": params["features"] | {"max_text_tokens": 16}}, {"data": params["data"] | {"root": "/d"}}]
+    assert all(config_hash(params | change) != config_hash(params) for change in other)

@@ -345,6 +345,7 @@ def good_clip(clip_id: str = "c1", **kw: object) -> Clip:
         ([good_clip(action="")], {}, "invalid action label ''"),
         ([good_clip()], {"train": ["c1", "zz"]}, "train.txt: id 'zz' is not among the clips"),
         ([good_clip()], {"val": ["c1", "c1"]}, "val.txt: id 'c1' listed 2 times"),
+        ([good_clip()], {"train": ["c1"], "val": ["c1"]}, "val.txt: id 'c1' is also in train.txt"),  # was written
     ],
 )
 def test_write_validation(tmp_path: Path, clips: list[Clip], splits: dict, expected: str) -> None:
@@ -384,6 +385,13 @@ def _append_bytes(path: Path, data: bytes) -> None:
     path.write_bytes(path.read_bytes() + data)
 
 
+def _huge_header(path: Path) -> None:
+    """A header that declares a billion frames over 64 bytes of data: numpy allocated 246 GiB before reading."""
+    with open(path, "wb") as f:
+        np.lib.format.write_array_header_1_0(f, {"descr": "<f4", "fortran_order": False, "shape": (10**9, 22, 3)})
+        f.write(bytes(64))
+
+
 def _with_nan(path: Path) -> None:
     arr = np.load(path)
     arr[3, 0, 0] = np.nan
@@ -402,6 +410,8 @@ BAD_INPUT: list[tuple[str, Corrupter, str, str]] = [
     ("missing motion", lambda r: (r / J2).unlink(), J2, "no motion file for split id"),
     ("truncated npy", lambda r: _truncate(r / J2), J2, "unreadable or corrupt .npy"),
     ("empty npy", lambda r: (r / J2).write_bytes(b""), J2, "reading magic string"),
+    ("huge header", lambda r: _huge_header(r / J2), J2,
+     "header declares 264000000000 bytes of data (shape (1000000000, 22, 3), float32), the file holds 64"),
     ("trailing bytes", lambda r: _append_bytes(r / J2, b"junk"), J2, "trailing bytes after the array data"),
     ("not npy", lambda r: (r / J2).write_bytes(b"hello, world" * 20), J2, "magic string is not correct"),
     ("pickled object", lambda r: np.save(r / J2, np.array([{}]), allow_pickle=True), J2, "Object arrays"),

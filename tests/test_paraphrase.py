@@ -107,6 +107,17 @@ def test_paraphrases_are_read_per_item_whole_clips_and_spans_apart(tmp_path):
     assert read_paraphrases(tmp_path / "elsewhere", items, fps=20.0) is None  # no set: no rows, no error
 
 
+def test_a_span_past_the_clips_end_matches_the_item_it_was_cut_to(tmp_path):
+    """``texts/``'s ``1.0#30.0`` on a 100-frame clip is the item c1@20-100; its paraphrase, copied with the same
+    times, was "no paraphrase of item c1@20-100". A span that ends inside the clip is matched uncut."""
+    _write(tmp_path / "paraphrases", "c1", [Caption("a guy lopes", (("lope", "VERB"),)),
+                                            Caption("a lady bounces", (("bounce", "VERB"),), 1.0, 30.0),
+                                            Caption("she hops", (("hop", "VERB"),), 1.0, 4.0)])
+    items = [_item("c1", "c1", 0, 100), _item("c1@20-100", "c1", 20, 80), _item("c1@20-80", "c1", 20, 60)]
+    assert read_paraphrases(tmp_path, items, fps=20.0) == {
+        "c1": ["a guy lopes"], "c1@20-100": ["a lady bounces"], "c1@20-80": ["she hops"]}
+
+
 def test_a_missing_or_incomplete_paraphrase_file_names_the_file_and_the_item(tmp_path):
     folder = tmp_path / "paraphrases"
     _write(folder, "c1", [Caption("somebody trots", (("trot", "VERB"),))])

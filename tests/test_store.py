@@ -56,3 +56,13 @@ def test_unreadable_file_names_the_path(tmp_path):
     bad.write_bytes(b"PAR1 truncated")
     with pytest.raises(ValueError, match="test.parquet"):
         read_split(bad)
+
+
+def test_a_parquet_file_without_a_stores_column_is_named_not_a_key_error(tmp_path):
+    """A split missing ``text_tokens`` (another tool's Parquet file) raised pyarrow's KeyError, a traceback."""
+    path = tmp_path / "val.parquet"
+    write_split(path, [_item(np.random.default_rng(2), 1, 1, 40)], D, E, H)
+    pq.write_table(pq.read_table(path).drop_columns(["text_tokens", "start"]), path)
+    with pytest.raises(ValueError) as err:
+        read_split(path)
+    assert str(err.value) == f"{path}: not a feature-store split: no column(s) start, text_tokens"

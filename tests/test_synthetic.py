@@ -23,6 +23,7 @@ from data.synthetic import (
     generate,
     generate_motion,
     ground_speed,
+    make_splits,
     mirror_joints,
     mirror_motion,
     mirror_segment,
@@ -60,6 +61,8 @@ def dataset(tmp_path_factory):
     stats = make_dataset.build_dataset(root, SMOKE, SEED)
     return root, stats
 
+
+FEW_SPLITS = {"train": 0.5, "val": 0.25, "test": 0.25}  # a motion in every split of a handful
 
 def _files_digest(root: Path) -> dict[str, str]:
     return {str(p.relative_to(root)): hashlib.sha256(p.read_bytes()).hexdigest()
@@ -441,7 +444,7 @@ def test_same_seed_same_motions_regardless_of_workers():
 
 @pytest.mark.slow  # builds the dataset (with GIF previews) twice
 def test_same_seed_gives_byte_identical_files(tmp_path):
-    config = SyntheticConfig(num_motions=10, previews=1, workers=1)
+    config = SyntheticConfig(num_motions=10, previews=1, workers=1, splits=FEW_SPLITS)
     make_dataset.build_dataset(tmp_path / "a", config, 9)
     make_dataset.build_dataset(tmp_path / "b", config, 9)
     digest = _files_digest(tmp_path / "a")
@@ -506,7 +509,8 @@ def test_a_failed_build_leaves_no_dataset(tmp_path, monkeypatch):
 
     monkeypatch.setattr(make_dataset, "write_previews", crash)
     with pytest.raises(RuntimeError, match="boom"):
-        make_dataset.build_dataset(tmp_path / "dataset", SyntheticConfig(num_motions=4, previews=1, workers=1), 1)
+        make_dataset.build_dataset(tmp_path / "dataset", SyntheticConfig(num_motions=4, previews=1, workers=1,
+                                                                                   splits=FEW_SPLITS), 1)
     assert list(tmp_path.iterdir()) == []
 
 
@@ -517,7 +521,8 @@ def test_stage_main_reads_params_and_never_writes_data_root(tmp_path):
     (users / "train.txt").write_text("000001\n")
     root = tmp_path / "dataset"
     make_dataset.main([f"paths.artifacts={tmp_path}", f"data.root={users}", "+synthetic.num_motions=6",
-                       "+synthetic.previews=0", "+synthetic.workers=1", "+synthetic.mirror=false"])
+                       "+synthetic.previews=0", "+synthetic.workers=1", "+synthetic.mirror=false",
+                       "synthetic.splits={train: 0.5, val: 0.25, test: 0.25}"])
     assert len((root / "train.txt").read_text().split()) + len((root / "test.txt").read_text().split()) + len(
         (root / "val.txt").read_text().split()) == 6
     assert [p.name for p in users.iterdir()] == ["train.txt"] and (users / "train.txt").read_text() == "000001\n"
@@ -529,3 +534,35 @@ def test_config_rejects_unknown_and_bad_params():
     with pytest.raises(ValueError, match="splits"):
         SyntheticConfig.from_params({"splits": {"train": 0.5, "val": 0.1, "test": 0.1}})
     assert SyntheticConfig.from_params({"pelvis_height": [0.9, 0.95]}).pelvis_height == (0.9, 0.95)
+
+
+
+@pytest.mark.parametrize(("section", "message"), [
+    ({"splits": {"train": 1.2, "val": -0.2, "test": 0.0}}, "fractions in [0, 1]"),  # wrote a 32-id val split
+    ({"pelvis_height": [-1.0, -0.9]}, "0 < min <= max, got [-1.0, -0.9]"),  # wrote upside-down bodies
+    ({"actions_per_motion": [1.5, -0.5]}, "probabilities (>= 0) summing to 1, got [1.5, -0.5]"),
+    ({"span_prob": 1.5}, "synthetic.span_prob: expected a probability in [0, 1], got 1.5"),
+    ({"workers": 0}, "workers >= 1"),
+])
+def test_config_refuses_values_that_wrote_a_wrong_dataset(section: dict, message: str) -> None:
+    """Each was accepted and wrote a dataset a later stage refused or, worse, one that read."""
+    with pytest.raises(ValueError) as err:
+        SyntheticConfig.from_params(section)
+    assert message in str(err.value)
+
+
+def test_a_split_left_empty_is_refused_before_any_motion_is_made() -> None:
+    """``num_motions=10`` with the default fractions wrote an empty val.txt, which extract_features refused."""
+    with pytest.raises(ValueError, match=re.escape("synthetic.splits: {'train': 0.8, 'val': 0.05, 'test': 0.15} of "
+                                                   "synthetic.num_motions=10 leaves a split empty ({'train': 8, "
+                                                   "'val': 0, 'test': 2})")):
+        make_splits(10, SyntheticConfig().splits, 0, mirror=False)
+    assert [len(ids) for ids in make_splits(20, SyntheticConfig().splits, 0, mirror=False).values()] == [16, 1, 3]
+
+
+def test_a_frame_budget_with_no_room_for_an_action_is_an_error_not_a_hang() -> None:
+    """``max_joint_frames=40`` drew action programs forever; a bounded number of draws names the key."""
+    config = SyntheticConfig(num_motions=1, min_joint_frames=2, max_joint_frames=40, mirror=False, previews=0)
+    with pytest.raises(ValueError, match=r"synthetic.max_joint_frames: 40 frames left no room for an action after "
+                                         r"motion 0's lead-in and tail in 100 tries"):
+        generate_motion(0, 0, config)
