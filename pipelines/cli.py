@@ -88,7 +88,7 @@ SHARED_KEYS: dict[str, Callable[[Mapping[str, Any], str, str], Any]] = {
     "ray.num_workers": partial(check_number, low=0, integer=True),
     "ray.use_gpu": partial(check_choice, choices=("auto", True, False)),
     "ray.cpus_per_worker": partial(check_number, low=0, low_open=True),
-    "ray.max_failures": partial(check_number, low=0, integer=True),
+    "ray.max_failures": partial(check_number, low=-1, integer=True),  # -1: no limit (runner.fit_retrying)
     "ray.checkpoint_every": partial(check_number, low=1, integer=True),
     "ray.report_every": partial(check_number, low=0, integer=True),
     "ray.storage": partial(check_type, kind=str, nullable=True),

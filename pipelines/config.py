@@ -236,6 +236,17 @@ def group_choices(group: str) -> list[str]:
     return sorted(path.stem for path in (CONF_DIR / group).glob("*.yaml"))
 
 
+def group_choice(override: str) -> str | None:
+    """``group=choice`` for an override choosing a group of ``conf/`` (``+group=choice`` too), else None.
+
+    Every group is in the defaults of ``conf/config.yaml``, so a ``+`` (Hydra: append a group) can only
+    mean choosing it: ``+scale=smoke`` is ``scale=smoke``.
+    """
+    key, sep, choice = override.partition("=")
+    group = key.lstrip("+")
+    return f"{group}={choice}" if sep and group in GROUPS else None
+
+
 def check_group_choice(override: str) -> None:
     """``group=choice`` checked to name a file ``conf/<group>/<choice>.yaml`` (nothing outside ``conf/``)."""
     group, _, choice = override.partition("=")
@@ -247,14 +258,18 @@ def check_group_choice(override: str) -> None:
 def compose_params(overrides: Sequence[str] = ()) -> dict[str, Any]:
     """Compose ``conf/config.yaml`` with Hydra overrides into a plain, resolved dict.
 
-    Group choices must be files of ``conf/<group>/``; Hydra's errors become a one-line ConfigError.
+    ``+group=choice`` chooses a group as ``group=choice`` does (:func:`group_choice`); group choices must
+    be files of ``conf/<group>/``; Hydra's errors become a one-line ConfigError.
     """
+    hydra_overrides: list[str] = []
     for override in overrides:
-        if override.partition("=")[0].lstrip("+") in GROUPS:
-            check_group_choice(override.lstrip("+"))
+        choice = group_choice(override)
+        if choice is not None:
+            check_group_choice(choice)
+        hydra_overrides.append(override if choice is None else choice)
     try:
         with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3", job_name="motionforge"):
-            cfg = compose(config_name="config", overrides=list(overrides))
+            cfg = compose(config_name="config", overrides=hydra_overrides)
         return OmegaConf.to_container(cfg, resolve=True)
     except (HydraException, OmegaConfBaseException) as err:
         raise ConfigError(" ".join(str(err).split("\n")[0].split())) from err
@@ -319,10 +334,11 @@ def apply_overrides(params: dict[str, Any], overrides: Sequence[str]) -> dict[st
 
 
 def load_params(argv: Sequence[str] | None = None, path: Path = PARAMS_PATH) -> dict[str, Any]:
-    """Params for a stage run: ``params.yaml`` (or ``conf/`` when a group is chosen) + overrides."""
+    """Params for a stage run: ``params.yaml`` (or ``conf/`` when a group is chosen, ``group=choice`` or
+    ``+group=choice``) + overrides."""
     argv = list(sys.argv[1:] if argv is None else argv)
-    groups = [a for a in argv if a.partition("=")[0] in GROUPS]
-    keys = [a for a in argv if a not in groups]
+    groups = [choice for choice in map(group_choice, argv) if choice is not None]
+    keys = [a for a in argv if group_choice(a) is None]
     params = compose_params(groups) if groups else read_params(path)
     return apply_overrides(params, keys)
 

@@ -40,6 +40,7 @@ from __future__ import annotations
 
 import contextlib
 import hashlib
+import itertools
 import json
 import math
 import os
@@ -61,11 +62,15 @@ from torch.utils.data import DataLoader, Dataset, DistributedSampler
 from data.atomic import atomic_directory, check_output
 from pipelines import checkpoint as ckpt
 from pipelines import tracking
-from pipelines.config import check_number
+from pipelines.config import check_number, refuse
 from pipelines.schedules import EMA, make_scheduler
 
 #: Offset between the RNG seeds of consecutive ranks (a prime, far from small seeds).
 RANK_SEED_STRIDE = 1_000_003
+#: Ranks an epoch seed keeps apart (:func:`epoch_seed`: the rank is its low 10 bits).
+EPOCH_SEED_RANKS = 1024
+#: The largest seed torch and numpy take everywhere (a signed 64-bit integer).
+INT64_MAX = 2**63 - 1
 
 
 # --------------------------------------------------------------------------- stage API
@@ -186,6 +191,8 @@ class LoopSettings:
     def parse(cls, section: Mapping[str, Any], where: str) -> LoopSettings:
         """A stage's ``loop`` params group, validated: every key present, no other, types checked.
 
+        Besides :data:`LOOP_BOUNDS`: ``seed`` at most :func:`max_seed` of ``max_steps`` (its epoch seeds
+        fit int64), and no ``warmup_steps`` with ``lr_schedule: constant`` (which would ignore it).
         ``where`` names the group in errors (e.g. ``train_vae.loop``).
         """
         names = [f.name for f in fields(cls)]
@@ -205,6 +212,14 @@ class LoopSettings:
             raise ValueError(f"{where}.lr_schedule: {section['lr_schedule']!r} is not cosine or constant")
         for key, (low, high) in LOOP_BOUNDS.items():
             check_number(section, key, where, low=low, high=high, integer=isinstance(getattr(cls, key), int))
+        highest = max_seed(section["max_steps"])
+        if section["seed"] > highest:
+            refuse(f"{where}.seed: expected an integer >= 0 and <= {highest} (with max_steps {section['max_steps']}, "
+                   f"so that every epoch seed (seed*{RANK_SEED_STRIDE} + epoch)*{EPOCH_SEED_RANKS} + rank stays "
+                   f"within int64), got {section['seed']!r}")
+        if section["lr_schedule"] == "constant" and section["warmup_steps"] > 0:
+            refuse(f"{where}.warmup_steps: {section['warmup_steps']!r} has no effect with lr_schedule constant; "
+                   f"expected 0 (or lr_schedule cosine)")
         return cls(**{f.name: section[f.name] for f in fields(cls)})
 
 
@@ -490,6 +505,19 @@ def to_device(batch: Any, device: torch.device) -> Any:
     return batch
 
 
+def epoch_seed(seed: int, epoch: int, rank: int) -> int:
+    """Seed of ``rank``'s length buckets and DataLoader workers in ``epoch`` (distinct per epoch and rank)."""
+    return (seed * RANK_SEED_STRIDE + epoch) * EPOCH_SEED_RANKS + rank
+
+
+def max_seed(max_steps: int) -> int:
+    """The largest loop ``seed`` whose :func:`epoch_seed` stays within int64 for every epoch a run of
+    ``max_steps`` can reach (an epoch holds at least one step: epoch <= max_steps) and every rank below
+    :data:`EPOCH_SEED_RANKS`; every other seed the runner derives (:func:`rank_seed` + step, the sampler's
+    seed + epoch) is smaller."""
+    return ((INT64_MAX - (EPOCH_SEED_RANKS - 1)) // EPOCH_SEED_RANKS - max_steps) // RANK_SEED_STRIDE
+
+
 def rank_seed(seed: int, rank: int) -> int:
     """Seed of the step-level RNG of ``rank`` (distinct per rank, e.g. diffusion noise)."""
     return seed + RANK_SEED_STRIDE * (rank + 1)
@@ -547,24 +575,33 @@ def bucket_by_length(indices: Sequence[int], lengths: np.ndarray, batch_size: in
     return [int(i) for b in order for i in batches[b]]
 
 
-def _epoch_loader(dataset: Dataset, spec: TrainSpec, s: LoopSettings, session: Session,
-                  pos: Position) -> DataLoader:
-    """The rest of epoch ``pos.epoch`` from batch ``pos.batch`` on, in its fixed order."""
+def _epoch_batches(dataset: Dataset, spec: TrainSpec, s: LoopSettings, session: Session,
+                   pos: Position) -> Iterator[Any]:
+    """The rest of epoch ``pos.epoch`` from batch ``pos.batch`` on, in its fixed order.
+
+    A dataset's own draws (a caption, a crop) come from the torch RNG of the process that loads the
+    item. In-process (``num_data_workers: 0``) that is the rank's RNG, which checkpoints save, so the
+    loader starts at ``pos.batch``. DataLoader workers seed theirs afresh with each loader and take the
+    batches in turn, so a resumed epoch loads its first ``pos.batch`` batches again and drops them: each
+    later batch then comes from the same worker in the same RNG state as in an uninterrupted run.
+    """
     sampler = DistributedSampler(dataset, num_replicas=session.world_size, rank=session.rank,
                                  shuffle=True, seed=s.seed, drop_last=True)
     sampler.set_epoch(pos.epoch)
-    epoch_seed = (s.seed * RANK_SEED_STRIDE + pos.epoch) * 1024 + session.rank
+    seed = epoch_seed(s.seed, pos.epoch, session.rank)
     indices = list(sampler)
     if s.length_buckets:
         lengths = getattr(dataset, "lengths", None)
         if lengths is None:
             raise ValueError(f"length_buckets needs a dataset with a `lengths` array; "
                              f"{type(dataset).__name__} has none")
-        indices = bucket_by_length(indices, np.asarray(lengths), s.batch_size, s.length_buckets, epoch_seed)
-    indices = indices[pos.batch * s.batch_size:]
-    generator = torch.Generator().manual_seed(epoch_seed)  # DataLoader worker seeds
-    return DataLoader(dataset, batch_size=s.batch_size, sampler=indices, drop_last=True,
-                      num_workers=s.num_data_workers, collate_fn=spec.collate, generator=generator)
+        indices = bucket_by_length(indices, np.asarray(lengths), s.batch_size, s.length_buckets, seed)
+    skip = pos.batch if s.num_data_workers else 0
+    indices = indices[(pos.batch - skip) * s.batch_size:]
+    generator = torch.Generator().manual_seed(seed)  # DataLoader worker seeds
+    loader = DataLoader(dataset, batch_size=s.batch_size, sampler=indices, drop_last=True,
+                        num_workers=s.num_data_workers, collate_fn=spec.collate, generator=generator)
+    return itertools.islice(loader, skip, None)
 
 
 def _batches_per_epoch(dataset: Dataset, s: LoopSettings, world_size: int) -> int:
@@ -729,7 +766,7 @@ def train_loop(session: Session, spec: TrainSpec, config: dict, info: RunInfo) -
     last_checkpoint = -1
     try:
         while run.pos.step < s.max_steps:
-            for batch in _epoch_loader(dataset, spec, s, session, run.pos):
+            for batch in _epoch_batches(dataset, spec, s, session, run.pos):
                 metrics = _train_step(spec, run, ctx, batch)
                 guard.add(run.pos.step, metrics)
                 window.add(metrics)

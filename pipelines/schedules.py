@@ -46,7 +46,11 @@ class Constant:
 def make_scheduler(
     optimizer: Optimizer, kind: str, warmup_steps: int, total_steps: int, min_ratio: float
 ) -> LambdaLR:
-    """Build the per-step LR scheduler named ``kind`` ("cosine" or "constant")."""
+    """Build the per-step LR scheduler named ``kind`` ("cosine" or "constant").
+
+    "constant" keeps the optimiser's LR throughout: it has no warm-up (a loop group asking for one with
+    it is refused by ``LoopSettings.parse``) and no floor.
+    """
     if kind == "cosine":
         return LambdaLR(optimizer, CosineWarmup(warmup_steps, total_steps, min_ratio))
     if kind == "constant":

@@ -94,6 +94,7 @@ from data.atomic import atomic_directory, check_output
 from pipelines.checkpoint import MODEL_FILE, load_state
 from pipelines.cli import check_shared
 from pipelines.config import ConfigError, check_choice, check_number
+from pipelines.identity import fingerprint
 from pipelines.runner import (
     LoopSettings,
     RayOptions,
@@ -384,10 +385,15 @@ def fit_concurrency(cluster: Mapping[str, float], num_workers: int, cpus_per_wor
 
 
 def experiment_name(stage: str, space: Mapping[str, Dimension], settings: SweepSettings,
-                    stage_params: Mapping[str, Any]) -> str:
-    """``sweep-<stage>-<10 hex>``: stable for the same space, settings and ``params[<stage>]``."""
+                    stage_params: Mapping[str, Any], identity: str = "", workers: Mapping[str, Any] | None = None
+                    ) -> str:
+    """``sweep-<stage>-<10 hex>``: stable for the same space, settings, ``params[<stage>]``, code and inputs
+    (``identity``, :func:`pipelines.identity.fingerprint`) and trial workers (``workers``). Ray Tune resumes
+    an experiment of the same name, so a sweep on another feature store, other code or another worker count
+    (whose trials' checkpoints would not fit) starts afresh instead of reporting the old trials."""
     blob = json.dumps({"space": {k: [d.kind, d.args] for k, d in space.items()}, "settings": asdict(settings),
-                       "params": stage_params}, sort_keys=True, default=str)
+                       "params": stage_params, "identity": identity, "workers": workers or {}},
+                      sort_keys=True, default=str)
     return f"sweep-{stage}-{hashlib.sha1(blob.encode()).hexdigest()[:10]}"
 
 
@@ -418,6 +424,9 @@ class SweepTarget:
         mode: "min" or "max" for ``metric``.
         checks: the stage's params checks (:func:`pipelines.stage.checks`: fast, no data read), run
             on every value the space can give before Ray starts (:func:`check_space_values`).
+        module: the stage module, whose code (with what it imports) names the experiment.
+        inputs: loop-config keys of input folders that exist before the sweep (the feature store, a
+            trained model), whose contents name the experiment.
     """
 
     stage: str
@@ -428,6 +437,8 @@ class SweepTarget:
     metric: str = "loss"
     mode: str = "min"
     checks: Sequence[Callable[[dict], object]] = ()
+    module: str = ""
+    inputs: Sequence[str] = ()
 
 
 @dataclass(frozen=True)
@@ -809,14 +820,14 @@ def check_space_values(target: SweepTarget, params: dict, space: Mapping[str, Di
                                            f"stage refuses: {err}") from None
 
 
-def check_loop_config(target: SweepTarget, params: dict) -> None:
-    """Build the swept run's loop config once from ``params``: its checks and inputs, before any work.
+def check_loop_config(target: SweepTarget, params: dict) -> dict:
+    """Build the swept run's loop config once from ``params`` (returned): its checks and inputs, before any work.
 
     A ValueError of the stage's checks is a :class:`SweepConfigError`; a missing input (e.g. no
     feature store) stays a FileNotFoundError.
     """
     try:
-        target.loop_config(params)
+        return target.loop_config(params)
     except SweepConfigError:
         raise
     except ValueError as err:
@@ -860,11 +871,14 @@ def plan_sweep(target: SweepTarget, params: dict, repo_root: Path) -> SweepPlan:
     space = parse_space(stage, sweep.get(stage), params[stage])
     check_space_values(target, params, space)
     opts = trial_ray_options(params, settings)
-    check_loop_config(target, params)
+    loop = check_loop_config(target, params)
     out_dir = repo_root / params["paths"]["artifacts"] / "sweeps" / stage
     check_output(out_dir, owner="sweep")
-    return SweepPlan(settings, space, experiment_name(stage, space, settings, params[stage]), opts,
-                     ray_storage(params), out_dir)
+    inputs = [loop[key] for key in target.inputs if loop.get(key)]  # an optional input may be None
+    identity = fingerprint(target.module, inputs) if target.module else ""
+    workers = {"num_workers": opts.num_workers, "cpus_per_worker": opts.cpus_per_worker, "use_gpu": opts.use_gpu}
+    name = experiment_name(stage, space, settings, params[stage], identity, workers)
+    return SweepPlan(settings, space, name, opts, ray_storage(params), out_dir)
 
 
 def run_sweep(target: SweepTarget, params: dict, repo_root: Path, *, callbacks: Sequence[Any] = ()) -> SweepResult:

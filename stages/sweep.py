@@ -14,7 +14,8 @@ checked and one trial must fit on the cluster. Writes ``artifacts/sweeps/<stage>
 (results.parquet, results.md, best_params.yaml).
 
 ``--cfg`` (anywhere after the stage) runs every check that needs no Ray (params, space, settings,
-inputs, output folder), prints the plan and exits without starting Ray.
+inputs, output folder), prints the plan and exits without starting Ray. ``--help`` or ``-h``
+(anywhere) prints this text and exits.
 
 Exit status:
 
@@ -45,7 +46,7 @@ from pipelines.sweep import (
     run_sweep,
 )
 
-USAGE = "usage: python -m stages.sweep <stage> [key=value ...] [--cfg]"
+USAGE = "usage: python -m stages.sweep <stage> [key=value ...] [--cfg] [--help]"
 
 
 def load_target(stage: str, params: dict[str, Any]) -> SweepTarget:
@@ -75,7 +76,7 @@ def _report(result: SweepResult) -> None:
 def main(argv: Sequence[str] | None = None) -> None:
     """Run the sweep; exit 1 if every trial failed or it was interrupted, 2 on a config error."""
     argv = list(sys.argv[1:] if argv is None else argv)
-    if argv and argv[0] in HELP_FLAGS:
+    if any(arg in HELP_FLAGS for arg in argv):  # anywhere, e.g. `stages.sweep train_vae --help`
         print(__doc__.strip())
         return
     if not argv or "=" in argv[0] or argv[0].startswith("-"):

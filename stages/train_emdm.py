@@ -57,7 +57,8 @@ def sweep_target(params: dict[str, Any]) -> SweepTarget:
     from pipelines.validation import emdm_scores  # evaluation code: only when sweeping
 
     return SweepTarget(stage="train_emdm", spec=STAGE.spec, loop_config=sweep_loop_config,
-                       validate=emdm_scores, metric="val_FID", mode="min", checks=checks(STAGE))
+                       validate=emdm_scores, metric="val_FID", mode="min", checks=checks(STAGE),
+                       module=STAGE.module, inputs=STAGE.inputs)
 
 
 if __name__ == "__main__":

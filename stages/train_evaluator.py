@@ -189,7 +189,8 @@ def sweep_target(params: dict[str, Any]) -> SweepTarget:
 
     return SweepTarget(stage="train_evaluator", spec=MATCHING.spec, loop_config=matching_loop_config,
                        prerequisite=movement_prerequisite, validate=evaluator_scores,
-                       metric="val_R_precision_top3", mode="max", checks=[*checks(MATCHING), check_section])
+                       metric="val_R_precision_top3", mode="max", checks=[*checks(MATCHING), check_section],
+                       module=MATCHING.module, inputs=("features_dir",))  # movement_dir: the prerequisite's
 
 
 def main(argv: Sequence[str] | None = None) -> None:

@@ -103,7 +103,8 @@ def sweep_target(params: dict[str, Any]) -> SweepTarget:
     from pipelines.validation import vae_scores  # evaluation code: only when sweeping
 
     return SweepTarget(stage="train_vae", spec=STAGE.spec, loop_config=sweep_loop_config, validate=vae_scores,
-                       metric="val_MPJPE_mm", mode="min", checks=checks(STAGE))
+                       metric="val_MPJPE_mm", mode="min", checks=checks(STAGE), module=STAGE.module,
+                       inputs=STAGE.inputs)
 
 
 if __name__ == "__main__":

@@ -49,6 +49,20 @@ def test_group_choice_recomposes_conf():
     assert kit["paths"] == compose_params()["paths"]
 
 
+def test_plus_group_choice_is_the_group_choice():
+    """``+scale=smoke`` chooses the smoke profile (it was a plain ``scale`` key a stage then dropped)."""
+    smoke = load_params(["scale=smoke"])
+    assert load_params(["+scale=smoke"]) == smoke and compose_params(["+scale=smoke"]) == smoke
+    vae = restrict_params(load_params(["+scale=smoke", "train_vae.lr=0.002"]), train_vae.STAGE.params)["train_vae"]
+    assert (vae["loop"]["max_steps"], vae["lr"]) == (50, 0.002)
+    assert vae["loop"]["max_steps"] != read_params(PARAMS_PATH)["train_vae"]["loop"]["max_steps"]
+    kit = load_params(["+dataset=kit", "+scale=smoke"])
+    assert (kit["data"]["skeleton"], kit["scale"]) == ("kit", "smoke")
+    with pytest.raises(ConfigError) as info:
+        load_params(["+scale=nope"])
+    assert str(info.value) == "scale='nope': no such choice; scale is one of ['paper', 'smoke', 'tiny']"
+
+
 def test_paper_profile_is_mlds_published_architecture():
     """`scale=paper` must not inherit the tiny profile's sizes (e.g. the tiny denoiser's width 128)."""
     paper = compose_params(["scale=paper"])
@@ -273,6 +287,33 @@ def test_null_or_count_keys_take_null_or_a_positive_integer(value, errors):
     params = load_params([])
     params["sample"]["motion_batch"] = value
     assert check_shared(params, ["sample"]) == errors
+
+
+@pytest.mark.parametrize(("value", "errors"), [
+    (-1, []), (0, []), (3, []),
+    (-2, ["ray.max_failures: expected an integer >= -1, got -2"]),
+    (1.5, ["ray.max_failures: expected an integer >= -1, got 1.5"]),
+])
+def test_max_failures_takes_minus_one_for_no_limit(value, errors):
+    """-1 is documented (RayOptions, fit_retrying) as retrying worker crashes without a limit."""
+    params = load_params([])
+    params["ray"]["max_failures"] = value
+    assert check_shared(params, ["ray"]) == errors
+
+
+def test_a_seed_whose_epoch_seeds_overflow_int64_is_refused_before_the_run(capsys):
+    """``train_vae.loop.seed=100000000000`` passed ``--cfg`` and then failed in the run (torch: Overflow when
+    unpacking long long)."""
+    from pipelines.runner import max_seed
+
+    steps = read_params(PARAMS_PATH)["train_vae"]["loop"]["max_steps"]
+    with pytest.raises(SystemExit) as exc:
+        stage_main(train_vae.STAGE, ["train_vae.loop.seed=100000000000", "--cfg"])
+    assert str(exc.value.code).splitlines() == [
+        f"train_vae: train_vae.loop.seed: expected an integer >= 0 and <= {max_seed(steps)} (with max_steps "
+        f"{steps}, so that every epoch seed (seed*1000003 + epoch)*1024 + rank stays within int64), got 100000000000"]
+    stage_main(train_vae.STAGE, [f"train_vae.loop.seed={max_seed(steps)}", "--cfg"])  # the largest one passes
+    capsys.readouterr()
 
 
 @pytest.mark.parametrize("address", [None, "auto", "local", "10.0.0.1:6379", "headnode:6379", "[::1]:6379",

@@ -26,9 +26,10 @@ import pytest
 import ray.cloudpickle
 import torch
 from torch import nn
-from torch.utils.data import TensorDataset
+from torch.utils.data import Dataset, TensorDataset
 
 from pipelines.checkpoint import STATE_FILE, load_final_model, rng_file
+from pipelines.config import ConfigError, every_problem
 from pipelines.runner import (
     Components,
     FiniteGuard,
@@ -39,14 +40,16 @@ from pipelines.runner import (
     StepContext,
     TrainingError,
     TrainSpec,
-    _epoch_loader,
+    _epoch_batches,
     _fit_local,
     _Window,
     bucket_by_length,
     decide_use_gpu,
     deterministic_gpu,
+    epoch_seed,
     fit_retrying,
     make_run_name,
+    max_seed,
     run_training,
 )
 from pipelines.schedules import EMA, CosineWarmup
@@ -301,14 +304,81 @@ def test_bucketed_epoch_resumes_mid_epoch_in_the_same_order() -> None:
     data.lengths = np.random.default_rng(5).integers(1, 100, size=len(data))
     settings = LoopSettings(seed=3, batch_size=16, length_buckets=4)
     session = SimpleNamespace(rank=0, world_size=1)
-    full = list(_epoch_loader(data, SPEC, settings, session, Position(epoch=2, batch=0)))
-    tail = list(_epoch_loader(data, SPEC, settings, session, Position(epoch=2, batch=5)))
+    full = list(_epoch_batches(data, SPEC, settings, session, Position(epoch=2, batch=0)))
+    tail = list(_epoch_batches(data, SPEC, settings, session, Position(epoch=2, batch=5)))
     assert len(full) == 16 and len(tail) == 11
     assert all(torch.equal(a[0], b[0]) for a, b in zip(full[5:], tail, strict=True))
-    other_epoch = list(_epoch_loader(data, SPEC, settings, session, Position(epoch=3, batch=0)))
+    other_epoch = list(_epoch_batches(data, SPEC, settings, session, Position(epoch=3, batch=0)))
     assert not torch.equal(full[0][0], other_epoch[0][0])
     with pytest.raises(ValueError, match="lengths"):
-        _epoch_loader(dataset({}), SPEC, settings, session, Position())
+        _epoch_batches(dataset({}), SPEC, settings, session, Position())
+
+
+class _DrawingDataset(Dataset):
+    """Items ``[index, a draw of the loading process's torch RNG]``, as a caption or crop choice is."""
+
+    def __len__(self) -> int:
+        return 64
+
+    def __getitem__(self, index: int) -> torch.Tensor:
+        return torch.tensor([float(index), float(torch.rand(()))])
+
+
+def test_an_epoch_resumed_with_data_workers_draws_what_the_whole_epoch_drew() -> None:
+    """With ``num_data_workers`` > 0 the draws come from each worker's RNG, seeded afresh with each loader; a
+    loader started at batch 5 gave its batches to other workers in other states (the whole run drifted after
+    a restart). The resumed epoch replays the first batches, so batches 5.. are the whole epoch's."""
+    settings = LoopSettings(seed=3, batch_size=4, num_data_workers=2)
+    session = SimpleNamespace(rank=0, world_size=1)
+    full = list(_epoch_batches(_DrawingDataset(), SPEC, settings, session, Position(epoch=1, batch=0)))
+    tail = list(_epoch_batches(_DrawingDataset(), SPEC, settings, session, Position(epoch=1, batch=5)))
+    assert len(full) == 16 and len(tail) == 11
+    assert all(torch.equal(a, b) for a, b in zip(full[5:], tail, strict=True))
+    draws = torch.cat(full)[:, 1]
+    assert len(set(draws.tolist())) == len(draws)  # the draws are random, so equality is not by accident
+
+
+#: A valid loop params group (cosine; 1200 steps).
+LOOP_GROUP = {"seed": 0, "batch_size": 16, "max_steps": 1200, "grad_clip": 0.0, "lr_schedule": "cosine",
+              "warmup_steps": 0, "min_lr_ratio": 0.0, "log_every": 50, "num_data_workers": 0, "length_buckets": 0}
+INT64_MAX = 2**63 - 1
+SEED_ERROR = ("x.loop.seed: expected an integer >= 0 and <= {top} (with max_steps 1200, so that every epoch seed "
+              "(seed*1000003 + epoch)*1024 + rank stays within int64), got {seed}")
+
+
+def test_largest_allowed_seed_keeps_every_epoch_seed_within_int64() -> None:
+    """The loop check bounds the seed so that the last epoch's seed of the last rank fits int64 (torch and
+    numpy seeds); the next seed would not, and is refused naming the key and the bound."""
+    top = max_seed(1200)
+    assert top == (2**53 - 1 - 1200) // 1_000_003 == 9_007_172_233
+    assert LoopSettings.parse(LOOP_GROUP | {"seed": top}, "x.loop").seed == top
+    assert epoch_seed(top, 1200, 1023) <= INT64_MAX < epoch_seed(top + 1, 1200, 1023)
+    assert epoch_seed(top, 0, 0) == top * 1_000_003 * 1024  # the formula every trained artefact was seeded with
+    # through the runner's loader: the last rank of 1024, at epoch max_steps, bucketed (numpy) and torch-seeded
+    data = TensorDataset(torch.arange(1024 * 16.0))
+    data.lengths = np.random.default_rng(0).integers(1, 100, size=len(data))
+    settings = LoopSettings(seed=top, batch_size=16, max_steps=1200, length_buckets=1)
+    [batch] = list(_epoch_batches(data, SPEC, settings, SimpleNamespace(rank=1023, world_size=1024),
+                                 Position(step=1199, epoch=1200)))
+    assert batch[0].shape == (16,)
+    with pytest.raises(ConfigError) as info:
+        LoopSettings.parse(LOOP_GROUP | {"seed": top + 1}, "x.loop")
+    assert str(info.value) == SEED_ERROR.format(top=top, seed=top + 1)
+
+
+def test_a_constant_schedule_refuses_a_warm_up_it_would_ignore() -> None:
+    constant = LOOP_GROUP | {"lr_schedule": "constant"}
+    assert LoopSettings.parse(constant, "x.loop").lr_schedule == "constant"
+    assert LoopSettings.parse(LOOP_GROUP | {"warmup_steps": 50}, "x.loop").warmup_steps == 50  # cosine warms up
+    with pytest.raises(ConfigError) as info:
+        LoopSettings.parse(constant | {"warmup_steps": 50}, "train_vae.loop")
+    assert str(info.value) == ("train_vae.loop.warmup_steps: 50 has no effect with lr_schedule constant; "
+                               "expected 0 (or lr_schedule cosine)")
+    with pytest.raises(ConfigError) as info, every_problem():  # a stage's checks list both, one line each
+        LoopSettings.parse(constant | {"warmup_steps": 1, "seed": max_seed(1200) + 1}, "x.loop")
+    assert str(info.value).splitlines() == [
+        SEED_ERROR.format(top=max_seed(1200), seed=max_seed(1200) + 1),
+        "x.loop.warmup_steps: 1 has no effect with lr_schedule constant; expected 0 (or lr_schedule cosine)"]
 
 
 def test_changed_params_give_a_fresh_run_name() -> None:

@@ -13,7 +13,9 @@ import copy
 import json
 import math
 import os
+import shutil
 import signal
+import subprocess
 import sys
 import time
 from dataclasses import asdict, replace
@@ -32,7 +34,7 @@ from ray.util.placement_group import placement_group, remove_placement_group
 from torch.utils.data import TensorDataset
 
 from data.store import StoredItem, write_split
-from pipelines.config import apply_overrides, compose_params
+from pipelines.config import REPO_ROOT, apply_overrides, compose_params
 from pipelines.runner import Components, LoopSettings, StepContext, TrainSpec, run_training
 from pipelines.sweep import (
     COMPLETED,
@@ -584,6 +586,28 @@ def _no_ray(*args: Any, **kwargs: Any) -> None:
     raise AssertionError("Ray was started before the checks")
 
 
+@pytest.mark.parametrize("argv", [["--help"], ["-h"], ["train_vae", "--help"], ["train_vae", "scale=smoke", "-h"],
+                                  ["train_vae", "--cfg", "--help"], ["no_such_stage", "--help"]])
+def test_help_flag_anywhere_prints_the_usage_and_runs_nothing(argv: list[str], monkeypatch: pytest.MonkeyPatch,
+                                                              capsys: pytest.CaptureFixture) -> None:
+    """``stages.sweep train_vae --help`` was read as the override '--help' (exit 2); it is help wherever it is."""
+    from stages import sweep
+
+    monkeypatch.setattr(sweep, "load_params", _no_ray)  # neither params nor a plan nor a sweep
+    sweep.main(argv)
+    captured = capsys.readouterr()
+    assert captured.out == sweep.__doc__.strip() + "\n" and captured.err == ""
+    assert captured.out.startswith("``python -m stages.sweep <stage> [key=value ...]``")
+
+
+@pytest.mark.slow
+def test_help_after_the_stage_exits_0_on_the_command_line() -> None:
+    proc = subprocess.run([sys.executable, "-m", "stages.sweep", "train_vae", "--help"], cwd=REPO_ROOT,
+                          capture_output=True, text=True, timeout=120)
+    assert (proc.returncode, proc.stderr) == (0, ""), proc.stderr
+    assert "``--help`` or ``-h``" in proc.stdout and "not of the form key=value" not in proc.stdout
+
+
 def test_bad_stage_params_exit_2_before_any_work(monkeypatch: pytest.MonkeyPatch, tmp_path: Path,
                                                  capsys: pytest.CaptureFixture) -> None:
     import pipelines.sweep
@@ -725,3 +749,32 @@ def test_best_params_are_chosen_by_the_validation_metric(ray_cluster: Any, tmp_p
     by_loss = run_sweep(toy_target(params), params, tmp_path / "by-loss")
     assert yaml.safe_load((by_loss.out_dir / "best_params.yaml").read_text()) == {"toy": {"lr": 0.1}}
     assert cpus_freed(ray_cluster)
+
+
+def test_a_sweep_on_another_store_other_code_or_other_workers_is_another_experiment(
+        small_store: dict[str, Any], tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Tune resumes an experiment of the same name: a sweep on a re-extracted feature store reported the old
+    store's trials as its results, and one with another worker count resumed checkpoints of another world
+    size. The name now holds the stage's code, its input folders' contents and the trial workers."""
+    import pipelines.sweep
+    from pipelines.config import REPO_ROOT
+    from pipelines.sweep import plan_sweep
+    from stages import train_vae
+
+    params = copy.deepcopy(small_store)
+    shutil.copytree(small_store["features"]["out"], tmp_path / "features")
+    params["features"]["out"] = str(tmp_path / "features")
+    params["paths"]["artifacts"] = str(tmp_path / "artifacts")
+    params["sweep"]["train_vae"] = {"lr": "grid([0.001, 0.003])"}
+
+    def name(p: dict[str, Any]) -> str:
+        return plan_sweep(train_vae.sweep_target(p), p, REPO_ROOT).name
+
+    first = name(params)
+    assert first == name(copy.deepcopy(params))
+    assert name(params | {"ray": params["ray"] | {"num_workers": 2}}) != first  # smoke: 0, trials take 1
+    (tmp_path / "features" / "meta.json").write_text((tmp_path / "features" / "meta.json").read_text() + " ")
+    assert name(params) != first
+    store_changed = name(params)
+    monkeypatch.setattr(pipelines.sweep, "fingerprint", lambda module, inputs: f"other code of {module}")
+    assert name(params) not in (first, store_changed)
