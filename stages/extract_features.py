@@ -45,7 +45,7 @@ from data.skeleton import Skeleton, get_skeleton
 from data.store import StoredItem, write_split
 from data.text_encoders import TextEncoder, build_text_encoder
 from pipelines.cli import run_main
-from pipelines.config import REPO_ROOT
+from pipelines.config import REPO_ROOT, refuse
 
 FEATURE_VERSION = 1  # bump when the feature computation changes
 ENCODE_CHUNK = 1024  # captions per encoder call: bounds the (N, L, H) token array in memory
@@ -302,10 +302,20 @@ def run(params: dict[str, Any]) -> Path:
     return out
 
 
+def check_section(params: dict[str, Any]) -> None:
+    """``data.feature_frames_below`` above the skeleton's shortest clip (else the length filter keeps nothing),
+    checked before the text encoder loads."""
+    data_cfg = params["data"]
+    shortest = get_skeleton(data_cfg["skeleton"]).min_frames
+    if data_cfg["feature_frames_below"] <= shortest:
+        refuse(f"data.feature_frames_below: expected more than {data_cfg['skeleton']}'s shortest clip, "
+               f"{shortest} feature frames, got {data_cfg['feature_frames_below']!r}")
+
+
 def main(argv: Sequence[str] | None = None) -> None:
     os.environ.setdefault("TOKENIZERS_PARALLELISM", "false")
     try:
-        run_main("extract_features", run, PARAMS, argv)
+        run_main("extract_features", run, PARAMS, argv, checks=[check_section])
     except DatasetError as err:
         if len(err.problems) == 1:
             sys.exit(f"extract_features: bad input, nothing written: {err.problems[0]}")

@@ -414,3 +414,13 @@ def test_the_store_hash_leaves_out_settings_that_do_not_change_its_content() -> 
     assert all(config_hash(params | change) == config_hash(params) for change in same)
     other = [{"features": params["features"] | {"max_text_tokens": 16}}, {"data": params["data"] | {"root": "/d"}}]
     assert all(config_hash(params | change) != config_hash(params) for change in other)
+
+
+def test_a_length_filter_that_keeps_no_clip_is_refused_before_the_encoder_loads(capsys) -> None:
+    """``data.feature_frames_below=40`` passed ``--cfg``; the run failed after the text encoder loaded, with the
+    reader's internal names (``need 1 <= min_frames < max_frames``)."""
+    with pytest.raises(SystemExit) as err:
+        main(["data.feature_frames_below=40", "--cfg"])
+    assert "data.feature_frames_below: expected more than humanml3d's shortest clip, 40 feature frames, got 40" in (
+        str(err.value.code))
+    main(["data.feature_frames_below=41", "--cfg"])
