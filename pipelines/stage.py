@@ -31,7 +31,7 @@ from __future__ import annotations
 
 import json
 import sys
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import asdict, dataclass
 from typing import Any
 
@@ -92,6 +92,12 @@ def module_name(name: str) -> str:
     return name
 
 
+def run_fingerprint(module: str, inputs: Sequence[str], config: Mapping[str, Any]) -> str:
+    """The code and inputs a run is named by: ``module``'s code and the folders ``config[key]`` of ``inputs``
+    (an optional input that is None left out), :func:`pipelines.identity.fingerprint`."""
+    return fingerprint(module_name(module), [config[key] for key in inputs if config.get(key) is not None])
+
+
 def loop_config(stage: TrainingStage, params: dict[str, Any]) -> dict[str, Any]:
     """The runner's loop config: the validated ``loop`` group plus the stage's own keys."""
     settings = LoopSettings.parse(param(params, stage.loop_key), stage.loop_key)
@@ -105,8 +111,7 @@ def loop_config(stage: TrainingStage, params: dict[str, Any]) -> dict[str, Any]:
 def train(stage: TrainingStage, params: dict[str, Any], config: dict[str, Any] | None = None) -> RunResult:
     """Run ``stage`` (``config``: a ready loop config, else built from params) and write its outputs."""
     config = loop_config(stage, params) if config is None else config
-    inputs = [config[key] for key in stage.inputs if config.get(key) is not None]
-    digest = fingerprint(module_name(stage.module), inputs)
+    digest = run_fingerprint(stage.module, stage.inputs, config)
     result = run_training(stage.name, stage.spec, config, dict(param(params, "ray")),
                           artifacts_dir(params) / stage.name, ray_storage(params), fingerprint=digest)
     print(f"{stage.name}: final loss {result.metrics.get('loss', float('nan')):.4f} after "

@@ -94,7 +94,6 @@ from data.atomic import atomic_directory, check_output
 from pipelines.checkpoint import MODEL_FILE, load_state
 from pipelines.cli import check_shared
 from pipelines.config import ConfigError, check_choice, check_number
-from pipelines.identity import fingerprint
 from pipelines.runner import (
     LoopSettings,
     RayOptions,
@@ -105,7 +104,7 @@ from pipelines.runner import (
     fit_retrying,
     run_training,
 )
-from pipelines.stage import ray_storage
+from pipelines.stage import ray_storage, run_fingerprint
 
 logger = logging.getLogger(__name__)
 
@@ -388,7 +387,7 @@ def experiment_name(stage: str, space: Mapping[str, Dimension], settings: SweepS
                     stage_params: Mapping[str, Any], identity: str = "", workers: Mapping[str, Any] | None = None
                     ) -> str:
     """``sweep-<stage>-<10 hex>``: stable for the same space, settings, ``params[<stage>]``, code and inputs
-    (``identity``, :func:`pipelines.identity.fingerprint`) and trial workers (``workers``). Ray Tune resumes
+    (``identity``, :func:`pipelines.stage.run_fingerprint`) and trial workers (``workers``). Ray Tune resumes
     an experiment of the same name, so a sweep on another feature store, other code or another worker count
     (whose trials' checkpoints would not fit) starts afresh instead of reporting the old trials."""
     blob = json.dumps({"space": {k: [d.kind, d.args] for k, d in space.items()}, "settings": asdict(settings),
@@ -507,17 +506,19 @@ def trial_driver(config: dict, job: SweepJob) -> None:
 
 
 def train_once(stage: str, spec: TrainSpec, loop_config: Mapping[str, Any], ray_cfg: Mapping[str, Any] | None,
-               out_dir: Path, storage: str | None = None) -> Path:
-    """:func:`run_training` unless ``out_dir`` already holds a model trained with this loop config.
+               out_dir: Path, storage: str | None = None, fingerprint: str = "") -> Path:
+    """:func:`run_training` unless ``out_dir`` already holds a model trained with this loop config and this
+    code and inputs (``fingerprint``, :func:`pipelines.stage.run_fingerprint`).
 
     For prerequisites: a restarted sweep does not pay for them again.
     """
     meta = Path(out_dir) / "run.json"
     if (Path(out_dir) / MODEL_FILE).exists() and meta.exists():
-        done = json.loads(meta.read_text()).get("config")
-        if done == json.loads(json.dumps(dict(loop_config), default=str)):
+        done = json.loads(meta.read_text())
+        if (done.get("config") == json.loads(json.dumps(dict(loop_config), default=str))
+                and done.get("fingerprint") == fingerprint):
             return Path(out_dir)
-    return run_training(stage, spec, loop_config, ray_cfg, out_dir, storage).out_dir
+    return run_training(stage, spec, loop_config, ray_cfg, out_dir, storage, fingerprint=fingerprint).out_dir
 
 
 def orphaned_placement_groups(job_id: str) -> list[str]:
@@ -874,8 +875,7 @@ def plan_sweep(target: SweepTarget, params: dict, repo_root: Path) -> SweepPlan:
     loop = check_loop_config(target, params)
     out_dir = repo_root / params["paths"]["artifacts"] / "sweeps" / stage
     check_output(out_dir, owner="sweep")
-    inputs = [loop[key] for key in target.inputs if loop.get(key)]  # an optional input may be None
-    identity = fingerprint(target.module, inputs) if target.module else ""
+    identity = run_fingerprint(target.module, target.inputs, loop) if target.module else ""
     workers = {"num_workers": opts.num_workers, "cpus_per_worker": opts.cpus_per_worker, "use_gpu": opts.use_gpu}
     name = experiment_name(stage, space, settings, params[stage], identity, workers)
     return SweepPlan(settings, space, name, opts, ray_storage(params), out_dir)

@@ -12,7 +12,8 @@
   (:mod:`pipelines.paraphrase`). A metric that does not apply to a row is absent.
 - ``samples/<row>_<k>.gif``: the fixed prompts of ``evaluate.samples`` for the chosen rows.
 - ``protocol.json``: the evaluation settings and the number of test items the rows were scored with
-  (:mod:`pipelines.tables`); the report refuses a folder whose protocol is not ``real``'s.
+  (0 when the family trained nothing; :mod:`pipelines.tables`); the report refuses a folder with rows
+  whose protocol is not ``real``'s.
 
 A family whose rows are action-conditioned (:class:`pipelines.action_evaluation.ActionGenerator`)
 is scored by the action-to-motion protocol instead (``Real-action`` and its rows: recogniser
@@ -114,14 +115,13 @@ def run(name: str, params: dict[str, Any]) -> dict[str, dict[str, float]]:
     cfg = eval_config(params["evaluate"])
     out = artifacts / "eval" / name
     check_output(out, owner="evaluate")
-    test = ctx.store.split("test")
-    settings = asdict(cfg)  # protocol.json, with len(test): the report merges tables of one protocol only
+    settings = asdict(cfg)  # protocol.json, with the test items scored: the report merges tables of one protocol
     untrained = [] if name == REAL else [(stage, reason) for stage in family(name).train_stages
                                          if (reason := skipped(artifacts / stage))]
     if untrained:  # e.g. the action stages on a dataset without action labels
         print(f"eval_{name}: no rows: {untrained[0][0]} trained nothing: {untrained[0][1]}")
         with atomic_directory(out, owner="evaluate") as tmp:
-            write_table(tmp, {}, settings, len(test))
+            write_table(tmp, {}, settings, 0)
         return {}
     rows = [] if name == REAL else family(name).build_rows(ctx)
     actions = [row for row in rows if isinstance(row, ActionGenerator)]
@@ -130,6 +130,7 @@ def run(name: str, params: dict[str, Any]) -> dict[str, dict[str, float]]:
     reconstructors = [row for row in rows if isinstance(row, Reconstructor) and not isinstance(row, Generator)]
     scored = name == REAL or headline or bool(reconstructors)  # the text-conditioned rows with an action accuracy
     recognised = bool(actions) or scored  # the rows the action recogniser scores
+    test = ctx.store.split("test")
     recogniser = (load_recogniser(ctx.trained(RECOGNISER)) if recognised and not skipped(artifacts / RECOGNISER)
                   else None)
     if actions:  # the action-to-motion protocol: the recogniser, not the T2M evaluator, and its own pair counts

@@ -65,11 +65,12 @@ def run(params: dict[str, Any]) -> dict[str, dict[str, float]]:
     untrained = [stage for name in TIMED for stage in FAMILIES[name].train_stages if skipped(artifacts / stage)]
     table: dict[str, dict[str, float]] = {}
     cfg = EvalConfig(**timing_section(params))
-    ctx = EvalContext(params, artifacts, repo_path(params, "features.out"))
-    test = ctx.store.split("test")
+    test: list = []
     if untrained:
         print(f"eval_speed: no rows: {untrained[0]} trained nothing")
     else:
+        ctx = EvalContext(params, artifacts, repo_path(params, "features.out"))
+        test = ctx.store.split("test")
         wanted = params["speed"]["rows"]
         built = {row.name: row for name in TIMED for row in FAMILIES[name].build_rows(ctx)
                  if isinstance(row, Generator)}

@@ -47,7 +47,7 @@ from pipelines.recogniser import SPEC as RECOGNISER_SPEC
 from pipelines.recogniser import check_section as check_recogniser
 from pipelines.recogniser import missing_actions, recogniser_config
 from pipelines.runner import Components, StepContext, TrainSpec, ray_connection
-from pipelines.stage import TrainingStage, checks, loop_config, train, train_unless_skipped
+from pipelines.stage import TrainingStage, checks, loop_config, run_fingerprint, train, train_unless_skipped
 
 if TYPE_CHECKING:
     from pipelines.sweep import SweepTarget
@@ -171,8 +171,9 @@ def movement_prerequisite(params: dict[str, Any], work_dir: Path, storage: str) 
     """Train the movement autoencoder once (under ``work_dir``) for every sweep trial to build on."""
     from pipelines.sweep import train_once  # imports Ray Tune: only when sweeping
 
-    out = train_once(MOVEMENT.name, MOVEMENT.spec, loop_config(MOVEMENT, params), params["ray"],
-                     work_dir / MOVEMENT.name, storage)
+    config = loop_config(MOVEMENT, params)
+    out = train_once(MOVEMENT.name, MOVEMENT.spec, config, params["ray"], work_dir / MOVEMENT.name, storage,
+                     fingerprint=run_fingerprint(MOVEMENT.module, MOVEMENT.inputs, config))
     return {"movement_dir": str(out.resolve())}
 
 

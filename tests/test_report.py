@@ -268,6 +268,8 @@ def test_a_family_scored_with_other_settings_than_real_is_refused(artifacts: Pat
     assert str(err.value) == (f"{path}: scored with another protocol than real (test_items 100 against 452; mm_times "
                               "2 against 10): run `dvc repro eval_emdm` to score it again with the same settings")
     assert {name: (artifacts / "eval" / name).read_bytes() for name in report_stage.OUTPUTS} == before
+    (artifacts / "eval" / "emdm" / "metrics.json").write_text("{}\n")  # trained nothing: no rows to mix
+    report_stage.run({"paths": {"artifacts": str(artifacts)}})
     path.write_text(json.dumps(protocol))
     (artifacts / "eval" / "speed" / "protocol.json").unlink()  # written before the stages wrote their protocol
     with pytest.raises(FileNotFoundError, match=r"speed/protocol.json is missing: run `dvc repro eval_speed` first"):

@@ -21,6 +21,7 @@ import time
 from dataclasses import asdict, replace
 from functools import partial
 from pathlib import Path
+from types import SimpleNamespace
 from typing import Any
 
 import numpy as np
@@ -776,5 +777,26 @@ def test_a_sweep_on_another_store_other_code_or_other_workers_is_another_experim
     (tmp_path / "features" / "meta.json").write_text((tmp_path / "features" / "meta.json").read_text() + " ")
     assert name(params) != first
     store_changed = name(params)
-    monkeypatch.setattr(pipelines.sweep, "fingerprint", lambda module, inputs: f"other code of {module}")
+    monkeypatch.setattr(pipelines.sweep, "run_fingerprint", lambda module, inputs, config: f"other code of {module}")
     assert name(params) not in (first, store_changed)
+
+
+def test_a_prerequisite_is_trained_again_when_its_code_or_inputs_changed(tmp_path: Path,
+                                                                         monkeypatch: pytest.MonkeyPatch) -> None:
+    """``train_once`` reused a prerequisite (the evaluator's movement encoder) whenever its loop config matched,
+    so a sweep restarted after a code change built its trials on the old model."""
+    import pipelines.sweep
+    from pipelines.checkpoint import MODEL_FILE
+    from pipelines.sweep import train_once
+
+    out = tmp_path / "movement"
+    out.mkdir()
+    (out / MODEL_FILE).write_bytes(b"model")
+    (out / "run.json").write_text(json.dumps({"config": {"lr": 0.1}, "fingerprint": "code-a"}))
+    trained = []
+    monkeypatch.setattr(pipelines.sweep, "run_training",
+                        lambda *args, **kwargs: trained.append(kwargs["fingerprint"]) or SimpleNamespace(out_dir=out))
+    assert train_once("m", None, {"lr": 0.1}, None, out, fingerprint="code-a") == out and trained == []
+    train_once("m", None, {"lr": 0.1}, None, out, fingerprint="code-b")
+    train_once("m", None, {"lr": 0.2}, None, out, fingerprint="code-a")
+    assert trained == ["code-b", "code-a"]
