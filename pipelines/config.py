@@ -142,6 +142,19 @@ def check_number(cfg: Mapping[str, Any], key: str, where: str, *, low: float, hi
     return value
 
 
+def is_integer(value: Any) -> bool:
+    """Whether ``value`` is an int (a bool is not)."""
+    return isinstance(value, int) and not isinstance(value, bool)
+
+
+def check_odd(cfg: Mapping[str, Any], key: str, where: str) -> None:
+    """``cfg[key]`` checked to be an odd integer >= 1 (a skip transformer's 2K + 1 layers, a centred kernel);
+    a ConfigError naming ``<where>.<key>`` otherwise."""
+    value = cfg[key]
+    if not is_integer(value) or value < 1 or value % 2 == 0:
+        refuse(f"{dotted(where, key)}: expected an odd integer >= 1, got {value!r}")
+
+
 def check_choice(cfg: Mapping[str, Any], key: str, where: str, *, choices: Sequence[Any]) -> Any:
     """``cfg[key]`` checked to be one of ``choices``; a ConfigError naming the key, the value and the choices."""
     value = cfg[key]

@@ -28,7 +28,7 @@ from models.emdm import (
 )
 from pipelines.checkpoint import load_final_model
 from pipelines.cli import artifacts_dir, repo_path
-from pipelines.config import check_fields, check_heads, check_number
+from pipelines.config import check_fields, check_heads, check_number, check_odd, dotted, refuse
 from pipelines.feature_store import FeatureStore
 from pipelines.recogniser import ActionClips, action_classes, labelled_items, missing_actions
 from pipelines.runner import Components, StepContext, TrainSpec
@@ -171,9 +171,26 @@ def check_section(cfg: dict[str, Any], section: str = "train_emdm") -> None:
     unknown, missing = sorted(set(model) - set(MODEL_KEYS)), [k for k in MODEL_KEYS if k not in model]
     if unknown or missing:
         raise ValueError(f"{section}.model: unknown key(s) {unknown}, missing key(s) {missing}")
-    check_fields(model, EMDMConfig, f"{section}.model")  # types and choices (the sizes' ranges: EMDMConfig)
+    check_fields(model, EMDMConfig, f"{section}.model")  # types and choices
+    check_model(model, f"{section}.model")
     check_heads(model, "heads", f"{section}.model", width=model["width"])
     check_heads(model, "d_heads", f"{section}.model", width=model["d_width"])
+
+
+def check_model(model: dict[str, Any], where: str) -> None:
+    """The ranges of a section's ``model`` group (every key of :data:`MODEL_KEYS` present, types checked), as
+    :class:`models.emdm.EMDMGenerator` and :class:`models.emdm.EMDMDiscriminator` need them: positive sizes and
+    depths, dropout in [0, 1), D's time sinusoid of at least one sin/cos pair, an even ``patch_frames`` for
+    ``overlap_out`` and an odd ``skip_kernel``."""
+    for key in ("width", "layers", "ff_dim", "z_dim", "mapping_layers", "d_width", "d_layers", "d_ff_dim",
+                "patch_frames"):
+        check_number(model, key, where, low=1, integer=True)
+    check_number(model, "d_time_dim", where, low=2, integer=True)
+    check_number(model, "dropout", where, low=0.0, high=1.0, high_open=True)
+    patch = model["patch_frames"]
+    if model["overlap_out"] is True and isinstance(patch, int) and patch % 2:
+        refuse(f"{dotted(where, 'overlap_out')}: needs an even patch_frames, got {patch!r}")
+    check_odd(model, "skip_kernel", where)
 
 
 def model_config(cfg: dict[str, Any], feature_dim: int, text_dim: int, num_actions: int = 0,

@@ -41,7 +41,7 @@ from data.atomic import atomic_directory, check_output
 from data.features import check_stats, features_from_joints, grouped_mean_std
 from data.humanml3d import SPLITS, DatasetError, MotionItem, Problem, SplitData, read_splits
 from data.paraphrase_set import read_paraphrases
-from data.skeleton import Skeleton, get_skeleton
+from data.skeleton import SKELETONS, Skeleton, get_skeleton
 from data.store import StoredItem, write_split
 from data.text_encoders import TextEncoder, build_text_encoder
 from pipelines.cli import run_main
@@ -306,8 +306,11 @@ def check_section(params: dict[str, Any]) -> None:
     """``data.feature_frames_below`` above the skeleton's shortest clip (else the length filter keeps nothing),
     checked before the text encoder loads."""
     data_cfg = params["data"]
+    below = data_cfg["feature_frames_below"]
+    if isinstance(below, bool) or not isinstance(below, int) or data_cfg["skeleton"] not in SKELETONS:
+        return  # the shared checks name a non-integer or an unknown skeleton
     shortest = get_skeleton(data_cfg["skeleton"]).min_frames
-    if data_cfg["feature_frames_below"] <= shortest:
+    if below <= shortest:
         refuse(f"data.feature_frames_below: expected more than {data_cfg['skeleton']}'s shortest clip, "
                f"{shortest} feature frames, got {data_cfg['feature_frames_below']!r}")
 

@@ -12,6 +12,7 @@ cosine schedule with warm-up, gradient clipping. Writes ``artifacts/train_contro
 
 from __future__ import annotations
 
+from dataclasses import MISSING, fields
 from pathlib import Path
 from typing import Any
 
@@ -24,7 +25,7 @@ from models.controlnet import ControlConfig, MotionControlNet, controlnet_loss
 from models.vae import LatentDistribution
 from pipelines.checkpoint import load_final_model
 from pipelines.cli import artifacts_dir
-from pipelines.config import ConfigError, check_fields, check_heads, check_keys, check_number
+from pipelines.config import ConfigError, check_fields, check_heads, check_keys, check_number, check_odd
 from pipelines.feature_store import FeatureStore
 from pipelines.latent_cache import collate_words, control_dataset
 from pipelines.mld_family import load_mld, load_motionlcm, load_vae
@@ -91,8 +92,21 @@ def check_section(params: dict[str, Any]) -> None:
         raise ValueError(f"{SECTION}.train_joints: {err}") from err
     check_fields(cfg["encoder"], ControlConfig, f"{SECTION}.encoder",
                  exclude=("joints_num", "hint_mean", "hint_std", "train_joints"))
-    check_number(cfg["encoder"], "patch_frames", f"{SECTION}.encoder", low=1, integer=True)
+    check_encoder(cfg["encoder"])
     check_heads(cfg["encoder"], "heads", f"{SECTION}.encoder", width=cfg["encoder"]["dim"])
+
+
+def check_encoder(encoder: dict[str, Any]) -> None:
+    """The ranges of ``train_controlnet.encoder`` (its types are :func:`check_fields`'; a key left out takes its
+    :class:`~models.controlnet.ControlConfig` default), as :class:`~models.controlnet.TrajectoryEncoder` needs
+    them: positive sizes, an odd skip-transformer depth, dropout in [0, 1)."""
+    where = f"{SECTION}.encoder"
+    defaults = {f.name: f.default for f in fields(ControlConfig) if f.default is not MISSING}
+    given = {**defaults, **encoder}
+    for key in ("dim", "ff_dim", "patch_frames"):
+        check_number(given, key, where, low=1, integer=True)
+    check_odd(given, "layers", where)  # models.transformer.SkipTransformer: 2K + 1
+    check_number(given, "dropout", where, low=0.0, high=1.0, high_open=True)
 
 
 def stage_config(params: dict[str, Any]) -> dict[str, Any]:

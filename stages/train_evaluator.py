@@ -31,6 +31,7 @@ from data.evaluator_data import CaptionMotionPairs, MovementWindows
 from data.vocab import WordVocab, load_glove
 from models.evaluator import (
     PROFILE_SIZES,
+    UNIT_LENGTH,
     EvaluatorConfig,
     MovementAutoencoder,
     T2MEvaluator,
@@ -39,7 +40,7 @@ from models.evaluator import (
 )
 from pipelines.checkpoint import load_final_model
 from pipelines.cli import artifacts_dir, param, repo_path, run_main
-from pipelines.config import check_choice, check_keys, check_number, check_type
+from pipelines.config import check_choice, check_keys, check_number, check_type, refuse
 from pipelines.evaluation import build_evaluator
 from pipelines.feature_store import FeatureStore
 from pipelines.recogniser import GROUP as RECOGNISER_GROUP
@@ -134,6 +135,10 @@ def check_section(params: dict[str, Any]) -> None:
     check_number(cfg, "margin", SECTION, low=0.0)
     for key in ("max_words", "min_word_count", "movement_window"):
         check_number(cfg, key, SECTION, low=1, integer=True)
+    window = cfg["movement_window"]  # the movement encoder downsamples by UNIT_LENGTH (T2MEvaluator.autoencode)
+    if isinstance(window, int) and not isinstance(window, bool) and window >= 1 and window % UNIT_LENGTH:
+        refuse(f"{SECTION}.movement_window: expected a multiple of {UNIT_LENGTH} (the movement encoder's unit "
+               f"length), got {window}")
     check_type(cfg, "glove_path", SECTION, kind=str, nullable=True)
 
 

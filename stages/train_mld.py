@@ -13,6 +13,8 @@ uses 1.0 (the ``paper`` profile sets ``normalize_latents: false``).
 
 from __future__ import annotations
 
+import math
+from dataclasses import asdict
 from typing import Any
 
 import torch
@@ -21,7 +23,17 @@ from models.mld import MLDConfig, MLDDenoiser, mld_loss
 from models.vae import LatentDistribution
 from pipelines.checkpoint import load_final_model
 from pipelines.cli import artifacts_dir, repo_path
-from pipelines.config import check_choice, check_fields, check_heads, check_keys, check_number, check_type
+from pipelines.config import (
+    check_choice,
+    check_fields,
+    check_heads,
+    check_keys,
+    check_number,
+    check_odd,
+    check_type,
+    is_integer,
+    refuse,
+)
 from pipelines.feature_store import FeatureStore
 from pipelines.latent_cache import collate_words, latent_dataset, measure_latent_std
 from pipelines.mld_family import noise_schedule
@@ -68,8 +80,29 @@ def check_section(params: dict[str, Any]) -> None:
     check_number(cfg, "beta_end", SECTION, low=cfg["beta_start"], low_open=True, high=1.0, high_open=True)
     check_number(cfg, "num_train_timesteps", SECTION, low=1, integer=True)
     check_fields(cfg["model"], MLDConfig, f"{SECTION}.model", exclude=DERIVED_MODEL_KEYS)
+    check_model(cfg["model"])
     if cfg["model"].get("hidden_dim") is not None:  # else the width is the VAE's latent_dim, checked with the VAE
         check_heads(cfg["model"], "heads", f"{SECTION}.model", width=cfg["model"]["hidden_dim"])
+
+
+def check_model(model: dict[str, Any]) -> None:
+    """The ranges of ``train_mld.model`` (its types are :func:`check_fields`'; a key left out takes its
+    :class:`~models.mld.MLDConfig` default), as :class:`~models.mld.MLDDenoiser` needs them: positive sizes, an
+    odd skip-transformer depth, dropout in [0, 1), a time sinusoid of at least one sin/cos pair whose frequency
+    denominator ``time_freq_dim // 2 - freq_shift`` stays positive (:func:`models.transformer.timestep_embedding`)."""
+    where, given = f"{SECTION}.model", {**asdict(MLDConfig()), **model}
+    for key in ("heads", "ff_dim", "max_len"):
+        check_number(given, key, where, low=1, integer=True)
+    if given["hidden_dim"] is not None:  # null: the width is the VAE's latent_dim
+        check_number(given, "hidden_dim", where, low=1, integer=True)
+    check_odd(given, "layers", where)  # models.transformer.SkipTransformer: 2K + 1
+    check_number(given, "dropout", where, low=0.0, high=1.0, high_open=True)
+    freq_dim, shift = given["time_freq_dim"], given["freq_shift"]
+    check_number(given, "time_freq_dim", where, low=2, integer=True)
+    if is_integer(freq_dim) and freq_dim >= 2 and isinstance(shift, int | float) and not isinstance(shift, bool):
+        half = freq_dim // 2
+        if not (math.isfinite(shift) and shift < half):
+            refuse(f"{where}.freq_shift: expected a number < time_freq_dim // 2 = {half}, got {shift!r}")
 
 
 def stage_config(params: dict[str, Any]) -> dict[str, Any]:

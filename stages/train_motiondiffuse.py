@@ -32,7 +32,7 @@ from data.motion_dataset import MotionTextDataset, collate_trimmed_words
 from models.diffusion import lag_moments
 from models.motiondiffuse import MotionDiffuse, MotionDiffuseConfig, training_loss
 from pipelines.cli import repo_path
-from pipelines.config import check_heads, check_number
+from pipelines.config import check_heads, check_number, is_integer, refuse
 from pipelines.feature_store import FeatureStore
 from pipelines.runner import Components, StepContext, TrainSpec
 from pipelines.stage import TrainingStage, main
@@ -112,15 +112,19 @@ def check_section(cfg: dict[str, Any]) -> None:
     check_number(model, "dropout", f"{SECTION}.model", low=0.0, high=1.0, high_open=True)
     for key in ("input_skip", "overlap_out"):
         if not isinstance(model[key], bool):
-            raise ValueError(f"{SECTION}.model.{key}: expected true or false, got {model[key]!r}")
-    if model["overlap_out"] and model["patch_frames"] % 2:
-        raise ValueError(f"{SECTION}.model.overlap_out: needs an even patch_frames, got {model['patch_frames']}")
+            refuse(f"{SECTION}.model.{key}: expected true or false, got {model[key]!r}")
+    if model["overlap_out"] is True and is_integer(model["patch_frames"]) and model["patch_frames"] % 2:
+        refuse(f"{SECTION}.model.overlap_out: needs an even patch_frames, got {model['patch_frames']}")
     check_number(model, "skip_kernel", f"{SECTION}.model", low=1, integer=True)
-    if model["skip_kernel"] % 2 == 0 or (model["skip_kernel"] > 1 and not model["input_skip"]):
-        raise ValueError(f"{SECTION}.model.skip_kernel: expected 1, or an odd number with input_skip true, got "
-                         f"{model['skip_kernel']!r} (input_skip {model['input_skip']!r})")
+    if is_integer(model["skip_kernel"]) and (model["skip_kernel"] % 2 == 0
+                                         or (model["skip_kernel"] > 1 and model["input_skip"] is not True)):
+        refuse(f"{SECTION}.model.skip_kernel: expected 1, or an odd number with input_skip true, got "
+               f"{model['skip_kernel']!r} (input_skip {model['input_skip']!r})")
+    kernel = model["temporal_kernel"]  # models.motiondiffuse item 12: 0 = no temporal convolution (the code)
+    if not is_integer(kernel) or kernel < 0 or (kernel and kernel % 2 == 0):
+        refuse(f"{SECTION}.model.temporal_kernel: expected 0 or an odd integer >= 1, got {kernel!r}")
     if model["attention"] not in ("linear", "softmax"):
-        raise ValueError(f"{SECTION}.model.attention: expected 'linear' or 'softmax', got {model['attention']!r}")
+        refuse(f"{SECTION}.model.attention: expected 'linear' or 'softmax', got {model['attention']!r}")
     for key in ("heads", "text_heads"):
         check_heads(model, key, f"{SECTION}.model", width=model["width"])
     if cfg["crop_frames"] > model["max_len"]:

@@ -13,6 +13,8 @@ Writes ``artifacts/train_vae/`` (model.pt, metrics.json, loss.csv/png).
 
 from __future__ import annotations
 
+import math
+from dataclasses import asdict
 from typing import TYPE_CHECKING, Any
 
 import torch
@@ -20,7 +22,7 @@ import torch
 from data.motion_dataset import MotionTextDataset, collate_trimmed
 from models.vae import MotionVAE, MotionVAEConfig, vae_loss
 from pipelines.cli import repo_path
-from pipelines.config import check_choice, check_fields, check_heads, check_keys, check_number
+from pipelines.config import check_choice, check_fields, check_heads, check_keys, check_number, check_odd, refuse
 from pipelines.feature_store import FeatureStore
 from pipelines.runner import Components, StepContext, TrainSpec
 from pipelines.stage import TrainingStage, checks, loop_config, main
@@ -68,7 +70,31 @@ def check_section(params: dict[str, Any]) -> None:
     check_choice(cfg, "joint_space", SECTION, choices=("global", "root"))
     model = cfg["model"]
     check_fields(model, MotionVAEConfig, f"{SECTION}.model", exclude=("feature_dim",))
+    check_model(model, crop_frames=cfg["crop_frames"])
     check_heads(model, "heads", f"{SECTION}.model", width=MotionVAEConfig(**model).width)
+
+
+def check_model(model: dict[str, Any], crop_frames: Any) -> None:
+    """The ranges of ``train_vae.model`` (its types are :func:`check_fields`'; a key left out takes its
+    :class:`~models.vae.MotionVAEConfig` default), as :class:`~models.vae.MotionVAE` needs them: positive sizes,
+    an odd skip-transformer depth, dropout in [0, 1), a finite log-variance offset, and a learned positional
+    table that holds the encoder's ``2 latent_tokens + crop_frames`` tokens."""
+    where, given = f"{SECTION}.model", {**asdict(MotionVAEConfig()), **model}
+    for key in ("latent_tokens", "latent_dim", "ff_dim", "max_len"):
+        check_number(given, key, where, low=1, integer=True)
+    if given["hidden_dim"] is not None:  # null: the width is latent_dim
+        check_number(given, "hidden_dim", where, low=1, integer=True)
+    check_odd(given, "layers", where)  # models.transformer.SkipTransformer: 2K + 1
+    check_number(given, "dropout", where, low=0.0, high=1.0, high_open=True)
+    offset = given["logvar_offset"]
+    if isinstance(offset, float) and not math.isfinite(offset):
+        refuse(f"{where}.logvar_offset: expected a finite number, got {offset!r}")
+    tokens, positions = given["latent_tokens"], given["max_len"]
+    if given["pos_encoding"] == "learned" and all(type(n) is int for n in (tokens, positions, crop_frames)):
+        needed = 2 * tokens + crop_frames
+        if positions < needed:
+            refuse(f"{where}.max_len: the learned positional encoding holds {positions} positions, the encoder "
+                   f"reads 2 x latent_tokens + crop_frames = {needed}")
 
 
 def stage_config(params: dict[str, Any]) -> dict[str, Any]:
