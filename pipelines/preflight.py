@@ -76,8 +76,9 @@ def stage_problems(stage: str, module: str, arguments: Sequence[str], overrides:
 
 def row_problems(params: dict[str, Any], commands: dict[str, tuple[str, list[str]]]) -> list[str]:
     """``<stage>: <problem>`` for each row name in ``evaluate.paraphrase_rows``, ``evaluate.samples.rows`` or
-    ``speed.rows`` that no family's rows will have (:meth:`pipelines.registry.ModelFamily.text_row_names`);
-    ``speed.rows`` against the families ``eval_speed`` times. Empty when the params these read are malformed:
+    ``speed.rows`` that no family's rows will have (:meth:`pipelines.registry.ModelFamily.text_row_names`):
+    ``samples.rows`` against the families that need no trajectory (their samples are drawn from captions
+    alone), ``speed.rows`` against the families ``eval_speed`` times. Empty when the params these read are malformed:
     the stages' own checks name those."""
     try:
         names = {name: family.text_row_names(params) for name, family in FAMILIES.items()}
@@ -88,13 +89,14 @@ def row_problems(params: dict[str, Any], commands: dict[str, tuple[str, list[str
         return []
     timed = [row for name in TIMED for row in names[name]]
     evaluating = [stage for stage, (module, _) in commands.items() if module == "stages.evaluate"]
-    kinds = {"evaluate.paraphrase_rows": ("the rows that answer captions", evaluating),
-             "evaluate.samples.rows": ("the rows that answer captions", evaluating),
-             "speed.rows": (f"the rows of {' and '.join(TIMED)}, which eval_speed times", ["eval_speed"])}
+    free = [row for name, rows in names.items() if not FAMILIES[name].controlled for row in rows]
+    every = [row for rows in names.values() for row in rows]
+    kinds = {"evaluate.paraphrase_rows": ("the rows that answer captions", every, evaluating),
+             "evaluate.samples.rows": ("the rows that answer captions without a trajectory", free, evaluating),
+             "speed.rows": (f"the rows of {' and '.join(TIMED)}, which eval_speed times", timed, ["eval_speed"])}
     problems = []
     for key, rows in lists.items():
-        what, stages = kinds[key]
-        known = timed if key == "speed.rows" else [row for rows in names.values() for row in rows]
+        what, known, stages = kinds[key]
         unknown = [row for row in rows if row not in known] if isinstance(rows, list) else []
         if unknown:
             problem = f"{key}: unknown row(s) {', '.join(map(repr, unknown))} (it takes {what}: {', '.join(known)})"

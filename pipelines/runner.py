@@ -1010,7 +1010,8 @@ def fit_retrying(make_trainer: Callable[[], Any], max_failures: int, run_name: s
                 raise
             failures += 1
             last_line = (str(err).strip().splitlines() or [type(err).__name__])[-1]
-            sys.stderr.write(f"{run_name}: worker failure {failures} of at most {max_failures} retried, "
+            limit = " (no limit)" if max_failures < 0 else f" of at most {max_failures}"
+            sys.stderr.write(f"{run_name}: worker failure {failures}{limit} retried, "
                              f"resuming from the latest checkpoint ({last_line})\n")
 
 

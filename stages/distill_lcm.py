@@ -106,7 +106,8 @@ def sweep_target(params: dict[str, Any]) -> SweepTarget:
     from pipelines.validation import motionlcm_scores  # evaluation code: only when sweeping
 
     return SweepTarget(stage="distill_lcm", spec=STAGE.spec, loop_config=sweep_loop_config,
-                       validate=motionlcm_scores, metric="val_FID", mode="min", checks=checks(STAGE))
+                       validate=motionlcm_scores, metric="val_FID", mode="min", checks=checks(STAGE),
+                       module=STAGE.module, inputs=STAGE.inputs)
 
 
 if __name__ == "__main__":

@@ -159,10 +159,9 @@ def build_items(data: SplitData, feats: dict[str, np.ndarray], text: dict[str, t
     return rows
 
 
-#: Keys that do not change what the store holds: where it goes, how many processes extract it (the
-#: clips' features do not depend on it), and whether bad input stops the stage (a store is written
-#: only when it holds every clip that reads, in both modes).
-NOT_CONTENT = {"features": ("out", "workers"), "data": ("on_error",)}
+#: Keys that do not change what the store holds: where it goes and how many processes extract it (the
+#: clips' features do not depend on it). ``data.on_error`` stays: skip mode writes ``skipped.json``.
+NOT_CONTENT = {"features": ("out", "workers"), "data": ()}
 
 
 def config_hash(params: dict[str, Any]) -> str:

@@ -70,15 +70,17 @@ def check_section(params: dict[str, Any]) -> None:
     check_choice(cfg, "joint_space", SECTION, choices=("global", "root"))
     model = cfg["model"]
     check_fields(model, MotionVAEConfig, f"{SECTION}.model", exclude=("feature_dim",))
-    check_model(model, crop_frames=cfg["crop_frames"])
+    check_model(model, crop_frames=cfg["crop_frames"], below=params["data"]["feature_frames_below"])
     check_heads(model, "heads", f"{SECTION}.model", width=MotionVAEConfig(**model).width)
 
 
-def check_model(model: dict[str, Any], crop_frames: Any) -> None:
+def check_model(model: dict[str, Any], crop_frames: Any, below: Any) -> None:
     """The ranges of ``train_vae.model`` (its types are :func:`check_fields`'; a key left out takes its
     :class:`~models.vae.MotionVAEConfig` default), as :class:`~models.vae.MotionVAE` needs them: positive sizes,
     an odd skip-transformer depth, dropout in [0, 1), a finite log-variance offset, and a learned positional
-    table that holds the encoder's ``2 latent_tokens + crop_frames`` tokens."""
+    table that holds the encoder's ``2 latent_tokens`` and the longest motion it encodes: a training crop
+    (``crop_frames``) or a whole motion of the evaluation and of MLD's latents (below
+    ``data.feature_frames_below`` frames)."""
     where, given = f"{SECTION}.model", {**asdict(MotionVAEConfig()), **model}
     for key in ("latent_tokens", "latent_dim", "ff_dim", "max_len"):
         check_number(given, key, where, low=1, integer=True)
@@ -90,11 +92,12 @@ def check_model(model: dict[str, Any], crop_frames: Any) -> None:
     if isinstance(offset, float) and not math.isfinite(offset):
         refuse(f"{where}.logvar_offset: expected a finite number, got {offset!r}")
     tokens, positions = given["latent_tokens"], given["max_len"]
-    if given["pos_encoding"] == "learned" and all(type(n) is int for n in (tokens, positions, crop_frames)):
-        needed = 2 * tokens + crop_frames
+    if given["pos_encoding"] == "learned" and all(type(n) is int for n in (tokens, positions, crop_frames, below)):
+        needed = 2 * tokens + max(crop_frames, below - 1)
         if positions < needed:
             refuse(f"{where}.max_len: the learned positional encoding holds {positions} positions, the encoder "
-                   f"reads 2 x latent_tokens + crop_frames = {needed}")
+                   f"reads 2 x latent_tokens + the longest motion (crop_frames, or data.feature_frames_below - 1 "
+                   f"frames) = {needed}")
 
 
 def stage_config(params: dict[str, Any]) -> dict[str, Any]:
@@ -112,8 +115,8 @@ def stage_config(params: dict[str, Any]) -> dict[str, Any]:
 
 STAGE = TrainingStage(
     name="train_vae", module=__name__, spec=TrainSpec(build=build, dataset=dataset, step=step, collate=collate_trimmed),
-    config=stage_config, inputs=("features_dir",), params=(SECTION, "features.out", "paths", "ray"),
-    check=check_section,
+    config=stage_config, inputs=("features_dir",),
+    params=(SECTION, "data.feature_frames_below", "features.out", "paths", "ray"), check=check_section,
 )
 
 

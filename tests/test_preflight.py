@@ -117,14 +117,16 @@ def test_row_names_no_family_has_are_named_before_the_pipeline_runs() -> None:
     captions = ("Random, Retrieval, MLD-DDIM50, MLD-DDIM1, MLD-DDIM2, MLD-DDIM4, MotionLCM-1, MotionLCM-2, "
                 "MotionLCM-4, MotionLCM-Control, MotionLCM-Control-5f, MotionLCM-Control+refine, "
                 "MotionLCM-1-uncontrolled, EMDM-{t}, MotionDiffuse-1000, MotionDiffuse-DDIM10")
-    with pytest.raises(SystemExit) as exit_info:
-        preflight.main(["evaluate.paraphrase_rows=[MLD-DDIM5O,MLD-DDIM50]", "evaluate.samples.rows=[VAE]",
-                        "speed.rows=[EMDM-10,MLD-DDIM50]"])
+    free = captions.replace("MotionLCM-Control, MotionLCM-Control-5f, MotionLCM-Control+refine, "
+                            "MotionLCM-1-uncontrolled, ", "")
+    with pytest.raises(SystemExit) as exit_info:  # a ControlNet row answers paraphrases, but draws no sample
+        preflight.main(["evaluate.paraphrase_rows=[MLD-DDIM5O,MLD-DDIM50,MotionLCM-Control]",
+                        "evaluate.samples.rows=[VAE,MotionLCM-Control]", "speed.rows=[EMDM-10,MLD-DDIM50]"])
     assert str(exit_info.value.code).splitlines()[1:] == [
         f"  evaluate.paraphrase_rows: unknown row(s) 'MLD-DDIM5O' (it takes the rows that answer captions: "
         f"{captions.format(t=10)}) ({evaluating})",
-        f"  evaluate.samples.rows: unknown row(s) 'VAE' (it takes the rows that answer captions: "
-        f"{captions.format(t=10)}) ({evaluating})",
+        f"  evaluate.samples.rows: unknown row(s) 'VAE', 'MotionLCM-Control' (it takes the rows that answer "
+        f"captions without a trajectory: {free.format(t=10)}) ({evaluating})",
         "  speed.rows: unknown row(s) 'MLD-DDIM50' (it takes the rows of emdm and motiondiffuse, which eval_speed "
         "times: EMDM-10, MotionDiffuse-1000, MotionDiffuse-DDIM10) (eval_speed)",
     ]

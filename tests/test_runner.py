@@ -270,6 +270,12 @@ def test_crashes_are_retried_up_to_max_failures(capsys: pytest.CaptureFixture[st
     with pytest.raises(WorkerGroupError):
         fit_retrying(lambda: _FakeTrainer(errors, calls), max_failures=2, run_name="toy-run")
     assert len(calls) == 3
+    calls.clear()  # -1: no limit
+    capsys.readouterr()
+    errors = [_worker_error(RuntimeError("worker died")) for _ in range(4)]
+    assert fit_retrying(lambda: _FakeTrainer(errors, calls), max_failures=-1, run_name="toy-run") == "done"
+    assert len(calls) == 5 and capsys.readouterr().err.splitlines()[0].startswith(
+        "toy-run: worker failure 1 (no limit) retried, resuming")
 
 
 def _batch_spread(batches: np.ndarray, lengths: np.ndarray) -> float:

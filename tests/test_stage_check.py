@@ -105,11 +105,17 @@ def test_every_bad_model_value_is_listed(capsys: pytest.CaptureFixture[str]) -> 
 
 
 def test_a_learned_positional_table_must_hold_the_vae_encoder_tokens(capsys: pytest.CaptureFixture[str]) -> None:
+    """The table holds the latent tokens and the longest motion the VAE encodes: a training crop, or a whole
+    test motion (below ``data.feature_frames_below`` frames; a table sized for the crops alone trained, then
+    failed in eval_vae and train_mld)."""
     learned = ["train_vae.model.pos_encoding=learned", "train_vae.model.latent_tokens=2"]
-    assert cfg_problems("train_vae", [*learned, "train_vae.model.max_len=199"], capsys) == [
-        "train_vae: train_vae.model.max_len: the learned positional encoding holds 199 positions, the encoder "
-        "reads 2 x latent_tokens + crop_frames = 200"]
-    assert cfg_problems("train_vae", [*learned, "train_vae.model.max_len=200"], capsys) == []
+    message = ("train_vae: train_vae.model.max_len: the learned positional encoding holds {} positions, the encoder "
+               "reads 2 x latent_tokens + the longest motion (crop_frames, or data.feature_frames_below - 1 frames) "
+               "= 203")
+    assert cfg_problems("train_vae", [*learned, "train_vae.model.max_len=202"], capsys) == [message.format(202)]
+    assert cfg_problems("train_vae", [*learned, "train_vae.model.max_len=80", "train_vae.crop_frames=64"],
+                        capsys) == [message.format(80)]
+    assert cfg_problems("train_vae", [*learned, "train_vae.model.max_len=203"], capsys) == []
 
 
 @pytest.mark.parametrize("overrides", [

@@ -800,3 +800,16 @@ def test_a_prerequisite_is_trained_again_when_its_code_or_inputs_changed(tmp_pat
     train_once("m", None, {"lr": 0.1}, None, out, fingerprint="code-b")
     train_once("m", None, {"lr": 0.2}, None, out, fingerprint="code-a")
     assert trained == ["code-b", "code-a"]
+
+
+@pytest.mark.parametrize("stage", ["train_evaluator", "train_vae", "distill_lcm", "train_emdm"])
+def test_every_sweep_target_names_its_code_and_inputs(stage: str) -> None:
+    """A target without them (distill_lcm's was) keeps its experiment name across a retrained teacher or a
+    re-extracted store, so Tune resumes the old trials."""
+    import importlib
+
+    from pipelines.config import compose_params
+
+    module = importlib.import_module(f"stages.{stage}")
+    target = module.sweep_target(compose_params(["scale=smoke"]))
+    assert target.module.startswith("stages.") and "features_dir" in target.inputs
