@@ -192,7 +192,8 @@ class LoopSettings:
         """A stage's ``loop`` params group, validated: every key present, no other, types checked.
 
         Besides :data:`LOOP_BOUNDS`: ``seed`` at most :func:`max_seed` of ``max_steps`` (its epoch seeds
-        fit int64), and no ``warmup_steps`` with ``lr_schedule: constant`` (which would ignore it).
+        fit int64), and no ``warmup_steps`` or ``min_lr_ratio`` with ``lr_schedule: constant`` (which would
+        ignore them).
         ``where`` names the group in errors (e.g. ``train_vae.loop``).
         """
         names = [f.name for f in fields(cls)]
@@ -217,9 +218,11 @@ class LoopSettings:
             refuse(f"{where}.seed: expected an integer >= 0 and <= {highest} (with max_steps {section['max_steps']}, "
                    f"so that every epoch seed (seed*{RANK_SEED_STRIDE} + epoch)*{EPOCH_SEED_RANKS} + rank stays "
                    f"within int64), got {section['seed']!r}")
-        if section["lr_schedule"] == "constant" and section["warmup_steps"] > 0:
-            refuse(f"{where}.warmup_steps: {section['warmup_steps']!r} has no effect with lr_schedule constant; "
-                   f"expected 0 (or lr_schedule cosine)")
+        if section["lr_schedule"] == "constant":
+            for key, value in (("warmup_steps", section["warmup_steps"]), ("min_lr_ratio", section["min_lr_ratio"])):
+                if value:
+                    refuse(f"{where}.{key}: {value!r} has no effect with lr_schedule constant; expected 0 (or "
+                           f"lr_schedule cosine)")
         return cls(**{f.name: section[f.name] for f in fields(cls)})
 
 

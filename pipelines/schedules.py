@@ -48,8 +48,8 @@ def make_scheduler(
 ) -> LambdaLR:
     """Build the per-step LR scheduler named ``kind`` ("cosine" or "constant").
 
-    "constant" keeps the optimiser's LR throughout: it has no warm-up (a loop group asking for one with
-    it is refused by ``LoopSettings.parse``) and no floor.
+    "constant" keeps the optimiser's LR throughout: it has no warm-up and no floor (a loop group asking
+    for either with it is refused by ``LoopSettings.parse``).
     """
     if kind == "cosine":
         return LambdaLR(optimizer, CosineWarmup(warmup_steps, total_steps, min_ratio))

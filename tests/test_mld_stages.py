@@ -241,7 +241,8 @@ def test_distill_lcm_trains_resumes_exactly_and_samples(trained, tmp_path):
     """MotionLCM through the runner: a 3-step run resumed to 6 steps equals 6 steps straight
     (constant LR, so the schedule does not depend on max_steps); then its rows and the CLI."""
     params = copy.deepcopy(trained)
-    params["distill_lcm"]["loop"].update(batch_size=8, log_every=3, warmup_steps=0, lr_schedule="constant")
+    params["distill_lcm"]["loop"].update(batch_size=8, log_every=3, warmup_steps=0, lr_schedule="constant",
+                                         min_lr_ratio=0.0)
     config = loop_config(distill_lcm.STAGE, params)
     assert config["model"]["time_cond_dim"] == 256 and config["teacher_dir"].endswith("train_mld")
     storage = str(tmp_path / "ray")
@@ -290,7 +291,7 @@ def test_train_controlnet_resumes_exactly_and_follows_the_cli_trajectory(trained
     params = copy.deepcopy(trained)
     if not (Path(params["paths"]["artifacts"]) / "distill_lcm" / "model.pt").exists():  # when run alone
         train(distill_lcm.STAGE, params)
-    params["train_controlnet"]["loop"].update(lr_schedule="constant")
+    params["train_controlnet"]["loop"].update(lr_schedule="constant", min_lr_ratio=0.0)
     config = loop_config(train_controlnet.STAGE, params)
     assert config["student_dir"].endswith("distill_lcm") and len(config["control"]["hint_mean"]) == 66
     storage = str(tmp_path / "ray")

@@ -380,6 +380,10 @@ def test_a_constant_schedule_refuses_a_warm_up_it_would_ignore() -> None:
         LoopSettings.parse(constant | {"warmup_steps": 50}, "train_vae.loop")
     assert str(info.value) == ("train_vae.loop.warmup_steps: 50 has no effect with lr_schedule constant; "
                                "expected 0 (or lr_schedule cosine)")
+    with pytest.raises(ConfigError) as info:  # a floor it would ignore too
+        LoopSettings.parse(constant | {"min_lr_ratio": 0.1}, "x.loop")
+    assert str(info.value) == ("x.loop.min_lr_ratio: 0.1 has no effect with lr_schedule constant; expected 0 (or "
+                               "lr_schedule cosine)")
     with pytest.raises(ConfigError) as info, every_problem():  # a stage's checks list both, one line each
         LoopSettings.parse(constant | {"warmup_steps": 1, "seed": max_seed(1200) + 1}, "x.loop")
     assert str(info.value).splitlines() == [
