@@ -28,7 +28,7 @@ from models.emdm import (
 )
 from pipelines.checkpoint import load_final_model
 from pipelines.cli import artifacts_dir, repo_path
-from pipelines.config import check_fields, check_heads, check_number, check_odd, dotted, refuse
+from pipelines.config import check_fields, check_heads, check_number, check_odd, dotted, is_integer, refuse
 from pipelines.feature_store import FeatureStore
 from pipelines.recogniser import ActionClips, action_classes, labelled_items, missing_actions
 from pipelines.runner import Components, StepContext, TrainSpec
@@ -188,7 +188,7 @@ def check_model(model: dict[str, Any], where: str) -> None:
     check_number(model, "d_time_dim", where, low=2, integer=True)
     check_number(model, "dropout", where, low=0.0, high=1.0, high_open=True)
     patch = model["patch_frames"]
-    if model["overlap_out"] is True and isinstance(patch, int) and patch % 2:
+    if model["overlap_out"] is True and is_integer(patch) and patch % 2:
         refuse(f"{dotted(where, 'overlap_out')}: needs an even patch_frames, got {patch!r}")
     check_odd(model, "skip_kernel", where)
 

@@ -82,21 +82,22 @@ def row_problems(params: dict[str, Any], commands: dict[str, tuple[str, list[str
     the stages' own checks name those."""
     try:
         names = {name: family.text_row_names(params) for name, family in FAMILIES.items()}
-        lists = {"evaluate.paraphrase_rows": params["evaluate"]["paraphrase_rows"],
-                 "evaluate.samples.rows": params["evaluate"]["samples"]["rows"],
-                 "speed.rows": params["speed"]["rows"]}
+        evaluate, speed = params["evaluate"], params["speed"]
+        every = [row for rows in names.values() for row in rows]
+        free = [row for name, rows in names.items() if not FAMILIES[name].controlled for row in rows]
+        timed = [row for name in TIMED for row in names[name]]
+        evaluating = [stage for stage, (module, _) in commands.items() if module == "stages.evaluate"]
+        checked = [  # (key, the names it gives, what it takes, the known names, the stages it concerns)
+            ("evaluate.paraphrase_rows", evaluate["paraphrase_rows"], "the rows that answer captions", every,
+             evaluating),
+            ("evaluate.samples.rows", evaluate["samples"]["rows"], "the rows that answer captions without a "
+             "trajectory", free, evaluating),
+            ("speed.rows", speed["rows"], f"the rows of {' and '.join(TIMED)}, which eval_speed times", timed,
+             ["eval_speed"])]
     except (KeyError, TypeError):
         return []
-    timed = [row for name in TIMED for row in names[name]]
-    evaluating = [stage for stage, (module, _) in commands.items() if module == "stages.evaluate"]
-    free = [row for name, rows in names.items() if not FAMILIES[name].controlled for row in rows]
-    every = [row for rows in names.values() for row in rows]
-    kinds = {"evaluate.paraphrase_rows": ("the rows that answer captions", every, evaluating),
-             "evaluate.samples.rows": ("the rows that answer captions without a trajectory", free, evaluating),
-             "speed.rows": (f"the rows of {' and '.join(TIMED)}, which eval_speed times", timed, ["eval_speed"])}
     problems = []
-    for key, rows in lists.items():
-        what, known, stages = kinds[key]
+    for key, rows, what, known, stages in checked:
         unknown = [row for row in rows if row not in known] if isinstance(rows, list) else []
         if unknown:
             problem = f"{key}: unknown row(s) {', '.join(map(repr, unknown))} (it takes {what}: {', '.join(known)})"

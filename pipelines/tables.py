@@ -62,12 +62,10 @@ def read_table(folder: Path) -> dict[str, dict[str, float]]:
 
 def check_protocols(reference: Path, folders: list[Path]) -> None:
     """Each folder's ``protocol.json`` equals ``reference``'s; ValueError naming the folder, each setting that
-    differs with both values, and the command that scores it again. A folder with no rows (its family
-    trained nothing, e.g. action labels on a dataset without them) adds nothing to mix, and is not checked."""
+    differs with both values, and the command that scores it again. Pass only folders with rows: one whose
+    family trained nothing (action labels on a dataset without them) adds nothing to mix."""
     expected = read_json(reference / PROTOCOL)
     for folder in folders:
-        if not read_table(folder):
-            continue
         found = read_json(folder / PROTOCOL)
         if found != expected:
             keys = sorted(set(found) | set(expected), key=lambda k: (k != "test_items", k))

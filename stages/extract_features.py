@@ -45,7 +45,7 @@ from data.skeleton import SKELETONS, Skeleton, get_skeleton
 from data.store import StoredItem, write_split
 from data.text_encoders import TextEncoder, build_text_encoder
 from pipelines.cli import run_main
-from pipelines.config import REPO_ROOT, refuse
+from pipelines.config import REPO_ROOT, is_integer, refuse
 
 FEATURE_VERSION = 1  # bump when the feature computation changes
 ENCODE_CHUNK = 1024  # captions per encoder call: bounds the (N, L, H) token array in memory
@@ -159,15 +159,16 @@ def build_items(data: SplitData, feats: dict[str, np.ndarray], text: dict[str, t
     return rows
 
 
-#: Keys that do not change what the store holds: where it goes and how many processes extract it (the
-#: clips' features do not depend on it). ``data.on_error`` stays: skip mode writes ``skipped.json``.
-NOT_CONTENT = {"features": ("out", "workers"), "data": ()}
+#: ``features`` keys that do not change what the store holds: where it goes and how many processes extract
+#: it (the clips' features do not depend on it). Every ``data`` key does (``on_error``: skip mode writes
+#: ``skipped.json``).
+NOT_CONTENT = ("out", "workers")
 
 
 def config_hash(params: dict[str, Any]) -> str:
     """Hash of everything that determines the store's content (``NOT_CONTENT`` left out)."""
-    relevant = {section: {key: value for key, value in params[section].items() if key not in NOT_CONTENT[section]}
-                for section in NOT_CONTENT} | {"version": FEATURE_VERSION}
+    features = {key: value for key, value in params["features"].items() if key not in NOT_CONTENT}
+    relevant = {"data": params["data"], "features": features, "version": FEATURE_VERSION}
     return hashlib.sha256(json.dumps(relevant, sort_keys=True).encode()).hexdigest()[:16]
 
 
@@ -306,7 +307,7 @@ def check_section(params: dict[str, Any]) -> None:
     checked before the text encoder loads."""
     data_cfg = params["data"]
     below = data_cfg["feature_frames_below"]
-    if isinstance(below, bool) or not isinstance(below, int) or data_cfg["skeleton"] not in SKELETONS:
+    if not is_integer(below) or data_cfg["skeleton"] not in SKELETONS:
         return  # the shared checks name a non-integer or an unknown skeleton
     shortest = get_skeleton(data_cfg["skeleton"]).min_frames
     if below <= shortest:

@@ -74,7 +74,7 @@ def run(params: dict[str, Any]) -> dict[str, dict[str, float]]:
             raise ValueError(f"{eval_dir / name} is a directory, where the report writes a file; move it away")
     folders = [eval_dir / name for name in (*SOURCES, SPEED)]
     tables = [read_table(folder) for folder in folders]
-    check_protocols(folders[0], folders[1:])
+    check_protocols(folders[0], [folder for folder, rows in zip(folders[1:], tables[1:], strict=True) if rows])
     table, speed = merge_tables(tables[:-1]), tables[-1]
     meta = read_json(eval_dir / "real" / "meta.json")
     samples = _read_samples(eval_dir)

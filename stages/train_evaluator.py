@@ -40,7 +40,7 @@ from models.evaluator import (
 )
 from pipelines.checkpoint import load_final_model
 from pipelines.cli import artifacts_dir, param, repo_path, run_main
-from pipelines.config import check_choice, check_keys, check_number, check_type, refuse
+from pipelines.config import check_choice, check_keys, check_number, check_type, is_integer, refuse
 from pipelines.evaluation import build_evaluator
 from pipelines.feature_store import FeatureStore
 from pipelines.recogniser import GROUP as RECOGNISER_GROUP
@@ -136,7 +136,7 @@ def check_section(params: dict[str, Any]) -> None:
     for key in ("max_words", "min_word_count", "movement_window"):
         check_number(cfg, key, SECTION, low=1, integer=True)
     window = cfg["movement_window"]  # the movement encoder downsamples by UNIT_LENGTH (T2MEvaluator.autoencode)
-    if isinstance(window, int) and not isinstance(window, bool) and window >= 1 and window % UNIT_LENGTH:
+    if is_integer(window) and window >= 1 and window % UNIT_LENGTH:
         refuse(f"{SECTION}.movement_window: expected a multiple of {UNIT_LENGTH} (the movement encoder's unit "
                f"length), got {window}")
     check_type(cfg, "glove_path", SECTION, kind=str, nullable=True)
