@@ -3,6 +3,8 @@
 ``evaluate`` and the user CLI only ever talk to a :class:`Generator`: texts (with their frozen
 text-encoder embeddings) and lengths in, dataset-normalised features out. A
 :class:`ControlledGenerator` also takes a :class:`Hint` (target joint positions on some frames).
+Both sides are NumPy arrays on the host, so a generator whose networks run on a GPU moves its inputs to
+:func:`device_of` its networks and brings its output back.
 """
 
 from __future__ import annotations
@@ -11,6 +13,15 @@ from dataclasses import dataclass
 from typing import Protocol, runtime_checkable
 
 import numpy as np
+import torch
+
+#: The default device of the loaders (``sample.device`` chooses another).
+CPU = torch.device("cpu")
+
+
+def device_of(module: torch.nn.Module) -> torch.device:
+    """Where a network's parameters live: the device a generator moves its inputs to."""
+    return next(module.parameters()).device
 
 
 @dataclass(frozen=True)

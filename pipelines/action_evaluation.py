@@ -39,6 +39,7 @@ import torch
 from data.motion_dataset import pad_motions
 from data.store import StoredItem
 from models import metrics as M
+from models.generator import CPU
 from models.recogniser import ActionRecogniser
 from pipelines.checkpoint import load_final_model
 from pipelines.evaluation import aggregate, crop_lengths
@@ -82,12 +83,12 @@ class FeatureSource(Protocol):
 # --------------------------------------------------------------------------- the recogniser
 
 
-def load_recogniser(out_dir: str | Path) -> ActionRecogniser:
-    """The trained recogniser of ``train_evaluator``'s recogniser run folder, in eval mode."""
+def load_recogniser(out_dir: str | Path, device: torch.device = CPU) -> ActionRecogniser:
+    """The trained recogniser of ``train_evaluator``'s recogniser run folder, in eval mode on ``device``."""
     payload = load_final_model(Path(out_dir))
     model = build_recogniser(payload["config"])
     model.load_state_dict(payload["models"]["recogniser"])
-    return model.eval()
+    return model.eval().to(device)
 
 
 @torch.inference_mode()

@@ -163,6 +163,15 @@ def check_choice(cfg: Mapping[str, Any], key: str, where: str, *, choices: Seque
     return value
 
 
+def check_device(cfg: Mapping[str, Any], key: str, where: str) -> str:
+    """``cfg[key]`` checked to name a device: ``auto``, ``cpu``, ``cuda`` or ``cuda:<index>``; a ConfigError naming
+    the key otherwise (whether the machine has that GPU is known only where the stage runs)."""
+    value = cfg[key]
+    if not (isinstance(value, str) and re.fullmatch(r"auto|cpu|cuda(:[0-9]+)?", value)):
+        refuse(f"{dotted(where, key)}: expected auto, cpu, cuda or cuda:<index>, got {value!r}")
+    return value
+
+
 def check_heads(cfg: Mapping[str, Any], key: str, where: str, *, width: int) -> None:
     """``cfg[key]``, a number of attention heads, checked to be an integer >= 1 that divides the network's
     ``width``; a ConfigError naming ``<where>.<key>`` otherwise (torch would assert when the network is built)."""

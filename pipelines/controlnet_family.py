@@ -22,24 +22,25 @@ import torch
 from data.root_projection import project_root
 from models.controlnet import ControlConfig, ControlledStudent, MotionControlNet, refine_noise
 from models.diffusion import NoiseSchedule
-from models.generator import ControlSpec, Hint, TextBatch
+from models.generator import ControlSpec, Hint, TextBatch, device_of
 from models.mld import MLDDenoiser
 from models.motionlcm import motionlcm_latents
 from models.transformer import lengths_to_mask
 from models.vae import MotionVAE
 from pipelines.checkpoint import load_final_model
-from pipelines.mld_family import MotionLCMGenerator, load_mld, load_motionlcm, load_vae, word_tokens
+from pipelines.mld_family import MotionLCMGenerator, load_mld, load_motionlcm, load_vae, text_inputs
 
 if TYPE_CHECKING:
     from pipelines.registry import EvalContext, GenerateOptions
 
 
 def load_controlnet(out_dir: Path, student: MLDDenoiser) -> MotionControlNet:
-    """The trained ControlNet of a ``train_controlnet`` output folder, on ``student``, in eval mode."""
+    """The trained ControlNet of a ``train_controlnet`` output folder, on ``student`` (and its device), in eval
+    mode."""
     payload = load_final_model(out_dir)
     controlnet = MotionControlNet(student, ControlConfig(**payload["config"]["control"]))
     controlnet.load_state_dict(payload["models"]["controlnet"])
-    return controlnet.eval()
+    return controlnet.eval().to(device_of(student))
 
 
 class ControlNetGenerator:
@@ -63,22 +64,24 @@ class ControlNetGenerator:
         if hint.joints.shape[0] != len(text) or hint.joints.shape[1] < frames or hint.joints.shape[2] != joints_num:
             raise ValueError(f"hint {hint.joints.shape} does not cover {len(text)} motions of up to {frames} frames "
                              f"and {joints_num} joints")
-        lengths_t = torch.as_tensor(lengths)
-        joints = torch.from_numpy(hint.joints[:, :frames].astype(np.float32))
-        mask = torch.from_numpy(hint.mask[:, :frames]) & lengths_to_mask(lengths_t, frames)[..., None]
+        device = device_of(self.student)
+        lengths_t = torch.as_tensor(lengths, device=device)
+        joints = torch.from_numpy(hint.joints[:, :frames].astype(np.float32)).to(device)
+        mask = torch.from_numpy(hint.mask[:, :frames]).to(device) & lengths_to_mask(lengths_t, frames)[..., None]
         model = ControlledStudent(self.student, self.controlnet, joints, mask)
-        text_emb, words = torch.from_numpy(text.pooled.astype(np.float32)), word_tokens(self.student, text)
+        text_emb, words = text_inputs(self.student, text)
         cfg = self.student.config
-        x_T = torch.randn((len(text), cfg.latent_tokens, cfg.latent_dim), generator=torch.Generator().manual_seed(seed))
+        x_T = torch.randn((len(text), cfg.latent_tokens, cfg.latent_dim),
+                          generator=torch.Generator().manual_seed(seed)).to(device)
 
         def denoise(x: torch.Tensor) -> torch.Tensor:
             return motionlcm_latents(model, self.schedule, text_emb, 1, self.w, x_T=x, **words)
 
         z0 = denoise(x_T) if self.refine is None else refine_noise(
-            denoise, self.vae, x_T, joints, mask, lengths_t, mean=self.mean, std=self.std,
+            denoise, self.vae, x_T, joints, mask, lengths_t, mean=self.mean.to(device), std=self.std.to(device),
             latent_scale=cfg.latent_scale, steps=int(self.refine["steps"]), lr=self.refine["lr"])
         with torch.no_grad():
-            out = self.vae.eval().decode_by_length(z0 * cfg.latent_scale, lengths_t).numpy()
+            out = self.vae.eval().decode_by_length(z0 * cfg.latent_scale, lengths_t).cpu().numpy()
         if self.refine is None or not self.refine["project"]:
             return out
         mean, std = self.mean.numpy(), self.std.numpy()
@@ -106,10 +109,10 @@ def _refine_settings(ctx: EvalContext) -> dict[str, Any]:
 def _controlnet(ctx: EvalContext, name: str, density: str, refine: bool = False,
                 base: ControlNetGenerator | None = None) -> ControlNetGenerator:
     if base is None:
-        student = load_motionlcm(ctx.trained("distill_lcm"))
+        student = load_motionlcm(ctx.trained("distill_lcm"), device=ctx.device)
         _, schedule, _ = load_mld(ctx.trained("train_mld"))
         controlnet = load_controlnet(ctx.trained("train_controlnet"), student)
-        vae = load_vae(ctx.trained("train_vae"))
+        vae = load_vae(ctx.trained("train_vae"), ctx.device)
     else:
         student, controlnet, vae, schedule = base.student, base.controlnet, base.vae, base.schedule
     return ControlNetGenerator(name, student, controlnet, vae, schedule, ctx.params["sample"]["motionlcm_guidance"],

@@ -28,7 +28,7 @@ import torch
 
 from data.motion_dataset import pad_tokens
 from models.emdm import EMDMConfig, EMDMGenerator, EMDMSchedule, sample_emdm
-from models.generator import Generator, TextBatch
+from models.generator import CPU, Generator, TextBatch
 from pipelines.checkpoint import load_final_model, skipped
 from pipelines.length_batches import sample_by_length
 
@@ -39,16 +39,18 @@ TRAIN_STAGE = "train_emdm"
 ACTION_STAGE = "train_emdm_action"
 
 
-def load_emdm(out_dir: Path, use_ema: bool = True) -> tuple[EMDMGenerator, EMDMSchedule, dict[str, Any]]:
-    """The trained generator of a ``train_emdm`` output folder in eval mode (its EMA weights when
-    present and ``use_ema``), its few-step schedule and its loop config."""
+def load_emdm(out_dir: Path, use_ema: bool = True,
+              device: torch.device = CPU) -> tuple[EMDMGenerator, EMDMSchedule, dict[str, Any]]:
+    """The trained generator of a ``train_emdm`` output folder in eval mode on ``device`` (its EMA weights when
+    present and ``use_ema``), its few-step schedule and its loop config. :func:`models.emdm.sample_emdm` moves
+    its inputs to the generator's device."""
     payload = load_final_model(out_dir)
     config = payload["config"]
     model = EMDMConfig(**config["model"])
     generator = EMDMGenerator(model)
     weights = payload["ema"].get("generator") if use_ema else None
     generator.load_state_dict(weights or payload["models"]["generator"])
-    return generator.eval(), model.make_schedule(), config
+    return generator.eval().to(device), model.make_schedule(), config
 
 
 class EMDMGeneratorRow:
@@ -134,7 +136,7 @@ class EMDMActionPrompts:
 
 
 def _emdm_action(ctx: EvalContext, guidance: float) -> EMDMActionRow:
-    generator, schedule, config = load_emdm(ctx.trained(ACTION_STAGE))
+    generator, schedule, config = load_emdm(ctx.trained(ACTION_STAGE), device=ctx.device)
     return EMDMActionRow("EMDM-action", generator, schedule, guidance, config["classes"],
                          ctx.params["sample"]["motion_batch"])
 
@@ -146,7 +148,7 @@ def emdm_action_rows(ctx: EvalContext) -> list[EMDMActionRow]:
 
 
 def _emdm(ctx: EvalContext, guidance: float) -> EMDMGeneratorRow:
-    generator, schedule, _ = load_emdm(ctx.trained(TRAIN_STAGE))
+    generator, schedule, _ = load_emdm(ctx.trained(TRAIN_STAGE), device=ctx.device)
     return EMDMGeneratorRow(f"EMDM-{schedule.num_steps}", generator, schedule, guidance,
                             ctx.params["sample"]["motion_batch"])
 

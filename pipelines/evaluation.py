@@ -73,7 +73,7 @@ from data.store import StoredItem
 from data.vocab import WordVocab
 from models import metrics as M
 from models.evaluator import EvaluatorConfig, T2MEvaluator
-from models.generator import ControlledGenerator, ControlSpec, Generator, Hint, Reconstructor, TextBatch
+from models.generator import CPU, ControlledGenerator, ControlSpec, Generator, Hint, Reconstructor, TextBatch, device_of
 from pipelines.checkpoint import load_final_model
 from pipelines.config import check_number, refuse
 
@@ -127,17 +127,18 @@ def build_evaluator(config: EvaluatorConfig, mean: Sequence[float], std: Sequenc
     return evaluator
 
 
-def load_evaluator(out_dir: Path) -> MotionEmbedder:
-    """The trained evaluator of ``train_evaluator``'s output folder, ready to embed."""
+def load_evaluator(out_dir: Path, device: torch.device = CPU) -> MotionEmbedder:
+    """The trained evaluator of ``train_evaluator``'s output folder on ``device``, ready to embed."""
     payload = load_final_model(out_dir)
     config = payload["config"]
     evaluator = build_evaluator(EvaluatorConfig.from_dict(config["model"]), config["mean"], config["std"])
     evaluator.load_state_dict(payload["models"]["evaluator"])
-    return MotionEmbedder(evaluator, WordVocab.from_dict(config["vocab"]), config["max_words"])
+    return MotionEmbedder(evaluator.to(device), WordVocab.from_dict(config["vocab"]), config["max_words"])
 
 
 class MotionEmbedder:
-    """The trained evaluator as two functions: captions -> (B, E), raw motions -> (B, E)."""
+    """The trained evaluator as two functions: captions -> (B, E), raw motions -> (B, E) (host arrays in and out,
+    whatever device the evaluator runs on)."""
 
     def __init__(self, evaluator: T2MEvaluator, vocab: WordVocab, max_words: int, batch: int = 256) -> None:
         self.evaluator = evaluator.eval()
@@ -150,16 +151,16 @@ class MotionEmbedder:
         out = []
         for first in range(0, len(tokens), self.batch):
             ids, pos, lens = self.vocab.encode_batch(tokens[first : first + self.batch], self.max_words)
-            out.append(self.evaluator.embed_text(ids, pos, lens).numpy())
+            out.append(self.evaluator.embed_text(ids, pos, lens).cpu().numpy())
         return np.concatenate(out)
 
     @torch.inference_mode()
     def motions(self, raw: np.ndarray, lengths: np.ndarray) -> np.ndarray:
         """``raw`` (B, T, D) un-normalised features, zero or anything past ``lengths``."""
-        out = []
+        out, device = [], device_of(self.evaluator)
         for first in range(0, len(raw), self.batch):
-            x = self.evaluator.normalize(torch.as_tensor(raw[first : first + self.batch]))
-            out.append(self.evaluator.embed_motion(x, lengths[first : first + self.batch]).numpy())
+            x = self.evaluator.normalize(torch.as_tensor(raw[first : first + self.batch], device=device))
+            out.append(self.evaluator.embed_motion(x, lengths[first : first + self.batch]).cpu().numpy())
         return np.concatenate(out)
 
 

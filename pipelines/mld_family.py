@@ -18,7 +18,7 @@ import torch
 
 from data.motion_dataset import pad_tokens
 from models.diffusion import NoiseSchedule, TimestepSpacing
-from models.generator import Generator, Reconstructor, TextBatch
+from models.generator import CPU, Generator, Reconstructor, TextBatch, device_of
 from models.mld import MLDConfig, MLDDenoiser, sample_mld
 from models.motionlcm import TIMESTEPS, sample_motionlcm
 from models.vae import MotionVAE, MotionVAEConfig, length_sorted_chunks
@@ -38,40 +38,44 @@ def noise_schedule(config: dict[str, Any]) -> NoiseSchedule:
                                    beta_start=config["beta_start"], beta_end=config["beta_end"])
 
 
-def load_vae(out_dir: Path) -> MotionVAE:
-    """The trained VAE of a ``train_vae`` output folder, in eval mode."""
+def load_vae(out_dir: Path, device: torch.device = CPU) -> MotionVAE:
+    """The trained VAE of a ``train_vae`` output folder, in eval mode, on ``device``."""
     payload = load_final_model(out_dir)
     vae = MotionVAE(MotionVAEConfig(**payload["config"]["model"]))
     vae.load_state_dict(payload["models"]["vae"])
-    return vae.eval()
+    return vae.eval().to(device)
 
 
-def load_motionlcm(out_dir: Path, use_ema: bool = False) -> MLDDenoiser:
+def load_motionlcm(out_dir: Path, use_ema: bool = False, device: torch.device = CPU) -> MLDDenoiser:
     """The distilled student of a ``distill_lcm`` output folder (the online student, as MotionLCM
-    releases it, unless ``use_ema``: the target network)."""
+    releases it, unless ``use_ema``: the target network), on ``device``."""
     payload = load_final_model(out_dir)
     student = MLDDenoiser(MLDConfig(**payload["config"]["model"]))
     weights = payload["ema"].get("student") if use_ema else None
     student.load_state_dict(weights or payload["models"]["student"])
-    return student.eval()
+    return student.eval().to(device)
 
 
-def load_mld(out_dir: Path, use_ema: bool = True) -> tuple[MLDDenoiser, NoiseSchedule, dict[str, Any]]:
-    """The trained denoiser (EMA weights when present), its noise schedule and its loop config."""
+def load_mld(out_dir: Path, use_ema: bool = True,
+             device: torch.device = CPU) -> tuple[MLDDenoiser, NoiseSchedule, dict[str, Any]]:
+    """The trained denoiser (EMA weights when present) on ``device``, its noise schedule and its loop config."""
     payload = load_final_model(out_dir)
     config = payload["config"]
     denoiser = MLDDenoiser(MLDConfig(**config["model"]))
     weights = payload["ema"].get("denoiser") if use_ema else None
     denoiser.load_state_dict(weights or payload["models"]["denoiser"])
-    return denoiser.eval(), noise_schedule(config), config
+    return denoiser.eval().to(device), noise_schedule(config), config
 
 
-def word_tokens(denoiser: MLDDenoiser, text: TextBatch) -> dict[str, torch.Tensor]:
-    """The prompts' padded word tokens and mask for a ``word_tokens`` denoiser, else nothing."""
+def text_inputs(denoiser: MLDDenoiser, text: TextBatch) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+    """The prompts' pooled embeddings and, for a ``word_tokens`` denoiser, their padded word tokens and mask, on
+    the denoiser's device."""
+    device = device_of(denoiser)
+    pooled = torch.from_numpy(text.pooled.astype(np.float32)).to(device)
     if denoiser.config.word_tokens == "none":
-        return {}
+        return pooled, {}
     tokens, mask = pad_tokens([np.asarray(t, np.float32) for t in text.tokens])
-    return {"text_tokens": tokens, "text_mask": mask}
+    return pooled, {"text_tokens": tokens.to(device), "text_mask": mask.to(device)}
 
 
 def ddim_spacing(num_steps: int, num_train_steps: int) -> TimestepSpacing:
@@ -106,11 +110,10 @@ class MLDGenerator:
     @torch.inference_mode()
     def sample(self, text: TextBatch, lengths: np.ndarray, seed: int) -> np.ndarray:
         generator = torch.Generator().manual_seed(seed)
-        words = word_tokens(self.denoiser, text)
-        out = sample_mld(self.denoiser, self.vae, self.schedule, torch.from_numpy(text.pooled.astype(np.float32)),
-                         torch.as_tensor(lengths), self.num_steps, self.guidance, generator,
-                         timestep_spacing=self.spacing, **words)
-        return out.numpy()
+        pooled, words = text_inputs(self.denoiser, text)
+        out = sample_mld(self.denoiser, self.vae, self.schedule, pooled, torch.as_tensor(lengths, device=pooled.device),
+                         self.num_steps, self.guidance, generator, timestep_spacing=self.spacing, **words)
+        return out.cpu().numpy()
 
 
 class MotionLCMGenerator:
@@ -126,11 +129,11 @@ class MotionLCMGenerator:
 
     @torch.inference_mode()
     def sample(self, text: TextBatch, lengths: np.ndarray, seed: int) -> np.ndarray:
-        words = word_tokens(self.student, text)
-        out = sample_motionlcm(self.student, self.vae, self.schedule, torch.from_numpy(text.pooled.astype(np.float32)),
-                               torch.as_tensor(lengths), self.num_steps, self.w,
+        pooled, words = text_inputs(self.student, text)
+        out = sample_motionlcm(self.student, self.vae, self.schedule, pooled,
+                               torch.as_tensor(lengths, device=pooled.device), self.num_steps, self.w,
                                torch.Generator().manual_seed(seed), **words)
-        return out.numpy()
+        return out.cpu().numpy()
 
 
 class VAEReconstruction:
@@ -144,22 +147,24 @@ class VAEReconstruction:
     @torch.inference_mode()
     def reconstruct(self, motions: np.ndarray, lengths: np.ndarray, chunk_size: int = 64) -> np.ndarray:
         """Normalised motions (B, T, D) -> reconstructions (B, T, D), in chunks of similar length."""
-        x, lengths_t = torch.from_numpy(motions.astype(np.float32)), torch.as_tensor(lengths)
+        device = device_of(self.vae)
+        x, lengths_t = torch.from_numpy(motions.astype(np.float32)).to(device), torch.as_tensor(lengths)
         out = torch.zeros_like(x)
         for idx, longest in length_sorted_chunks(lengths_t, chunk_size):
-            z, _ = self.vae.encode(x[idx, :longest], lengths_t[idx], sample=False)
-            out[idx, :longest] = self.vae.decode(z, lengths_t[idx], longest)
-        return out.numpy()
+            z, _ = self.vae.encode(x[idx, :longest], lengths_t[idx].to(device), sample=False)
+            out[idx, :longest] = self.vae.decode(z, lengths_t[idx].to(device), longest)
+        return out.cpu().numpy()
 
 
 def vae_rows(ctx: EvalContext) -> list[Reconstructor]:
     """The motion VAE's reconstruction of the test motions."""
-    return [VAEReconstruction(load_vae(ctx.trained("train_vae")))]
+    return [VAEReconstruction(load_vae(ctx.trained("train_vae"), ctx.device))]
 
 
 def _mld(ctx: EvalContext, steps: int, guidance: float) -> MLDGenerator:
-    denoiser, schedule, _ = load_mld(ctx.trained("train_mld"))
-    return MLDGenerator(f"MLD-DDIM{steps}", denoiser, load_vae(ctx.trained("train_vae")), schedule, steps, guidance)
+    denoiser, schedule, _ = load_mld(ctx.trained("train_mld"), device=ctx.device)
+    return MLDGenerator(f"MLD-DDIM{steps}", denoiser, load_vae(ctx.trained("train_vae"), ctx.device), schedule, steps,
+                        guidance)
 
 
 def mld_row_names(params: dict[str, Any]) -> list[str]:
@@ -182,9 +187,9 @@ def mld_generator(ctx: EvalContext, options: GenerateOptions) -> Generator:
 
 def _motionlcm(ctx: EvalContext, steps: int, guidance: float) -> MotionLCMGenerator:
     _, schedule, _ = load_mld(ctx.trained("train_mld"))
-    student = load_motionlcm(ctx.trained("distill_lcm"))
-    return MotionLCMGenerator(f"MotionLCM-{steps}", student, load_vae(ctx.trained("train_vae")), schedule, steps,
-                              guidance)
+    student = load_motionlcm(ctx.trained("distill_lcm"), device=ctx.device)
+    return MotionLCMGenerator(f"MotionLCM-{steps}", student, load_vae(ctx.trained("train_vae"), ctx.device), schedule,
+                              steps, guidance)
 
 
 def motionlcm_row_names(params: dict[str, Any]) -> list[str]:

@@ -31,7 +31,7 @@ import torch
 
 from data.motion_dataset import pad_tokens
 from models.diffusion import NoiseSchedule, ddim_sample, ddpm_sample
-from models.generator import Generator, TextBatch
+from models.generator import CPU, Generator, TextBatch, device_of
 from models.motiondiffuse import (
     ModelFn,
     MotionDiffuse,
@@ -55,15 +55,16 @@ MODEL = "denoiser"
 DDIM_ROW_STEPS = 10
 
 
-def load_motiondiffuse(out_dir: Path, use_ema: bool = True) -> tuple[MotionDiffuse, NoiseSchedule, dict[str, Any]]:
-    """The trained noise predictor of a ``train_motiondiffuse`` output folder in eval mode (its EMA weights
-    when present and ``use_ema``; the paper trains none), its noise schedule and its loop config."""
+def load_motiondiffuse(out_dir: Path, use_ema: bool = True,
+                       device: torch.device = CPU) -> tuple[MotionDiffuse, NoiseSchedule, dict[str, Any]]:
+    """The trained noise predictor of a ``train_motiondiffuse`` output folder in eval mode on ``device`` (its EMA
+    weights when present and ``use_ema``; the paper trains none), its noise schedule and its loop config."""
     payload = load_final_model(out_dir)
     config = payload["config"]
     model = MotionDiffuse(MotionDiffuseConfig(**config["model"]))
     weights = payload["ema"].get(MODEL) if use_ema else None
     model.load_state_dict(weights or payload["models"][MODEL])
-    return model.eval(), model.config.make_schedule(), config
+    return model.eval().to(device), model.config.make_schedule(), config
 
 
 class MotionDiffuseRow:
@@ -110,7 +111,7 @@ class MotionDiffuseRow:
                                 self.batch)
 
     def _sample(self, text: TextBatch, lengths: np.ndarray, seed: int) -> np.ndarray:
-        tokens, mask = pad_tokens([np.asarray(t, np.float32) for t in text.tokens])
+        tokens, mask = _word_states(text)
         out = sample_motiondiffuse(self.model, self.schedule, torch.as_tensor(lengths), tokens, mask,
                                    method=self.method, steps=self.steps,
                                    generator=torch.Generator().manual_seed(seed), guidance=self.guidance)
@@ -123,7 +124,7 @@ def _guidance(ctx: EvalContext) -> float:
 
 
 def _load(ctx: EvalContext) -> tuple[MotionDiffuse, NoiseSchedule]:
-    model, schedule, _ = load_motiondiffuse(ctx.trained(TRAIN_STAGE))
+    model, schedule, _ = load_motiondiffuse(ctx.trained(TRAIN_STAGE), device=ctx.device)
     return model, schedule
 
 
@@ -174,6 +175,7 @@ def motiondiffuse_generator(ctx: EvalContext, options: GenerateOptions) -> Gener
 
 
 def _word_states(text: TextBatch) -> tuple[torch.Tensor, torch.Tensor]:
+    """The prompts' padded word states (B, L, E) and mask (B, L) (the model's functions move them to its device)."""
     return pad_tokens([np.asarray(t, np.float32) for t in text.tokens])
 
 
@@ -182,7 +184,7 @@ def _sample_with(row: MotionDiffuseRow, model_fn: ModelFn, batch: int, num_frame
     posterior variance or DDIM eta 0 on the trailing grid ending on x0) with a composed ``model_fn``."""
     shape = (batch, num_frames, row.model.config.feature_dim)
     generator = torch.Generator().manual_seed(seed)
-    x_T = torch.randn(shape, generator=generator)
+    x_T = torch.randn(shape, generator=generator).to(device_of(row.model))
     with torch.no_grad():  # the compositions' gradient terms enable autograd (w.r.t. x_t) themselves
         if row.method == "ddpm":
             x0 = ddpm_sample(model_fn, shape, row.schedule, generator, x_T=x_T, variance_type="fixed_small")

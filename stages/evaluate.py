@@ -55,12 +55,12 @@ from pipelines.evaluation import (
     save_references,
 )
 from pipelines.paraphrase import semantics
-from pipelines.registry import FAMILIES, EvalContext, family
+from pipelines.registry import FAMILIES, EvalContext, family, sampling_device
 from pipelines.tables import write_table
 
 REAL = "real"
 #: Params every evaluation stage reads; a family's stage also reads its registry entry's ``params``.
-PARAMS = ("evaluate", "features.out", "data.root", "data.name", "data.skeleton", "paths.artifacts")
+PARAMS = ("evaluate", "features.out", "data.root", "data.name", "data.skeleton", "paths.artifacts", "sample.device")
 REFERENCES = "references.npz"
 #: The evaluator stage's output holding the action recogniser.
 RECOGNISER = "train_evaluator_recogniser"
@@ -111,7 +111,7 @@ def render_samples(rows: Sequence[Generator], ctx: EvalContext, out: Path) -> No
 def run(name: str, params: dict[str, Any]) -> dict[str, dict[str, float]]:
     """Evaluate ``name``'s rows and write ``artifacts/eval/<name>``; returns its rows."""
     artifacts = artifacts_dir(params)
-    ctx = EvalContext(params, artifacts, repo_path(params, "features.out"))
+    ctx = EvalContext(params, artifacts, repo_path(params, "features.out"), sampling_device(params["sample"]["device"]))
     cfg = eval_config(params["evaluate"])
     out = artifacts / "eval" / name
     check_output(out, owner="evaluate")
@@ -131,15 +131,15 @@ def run(name: str, params: dict[str, Any]) -> dict[str, dict[str, float]]:
     scored = name == REAL or headline or bool(reconstructors)  # the text-conditioned rows with an action accuracy
     recognised = bool(actions) or scored  # the rows the action recogniser scores
     test = ctx.store.split("test")
-    recogniser = (load_recogniser(ctx.trained(RECOGNISER)) if recognised and not skipped(artifacts / RECOGNISER)
-                  else None)
+    recogniser = (load_recogniser(ctx.trained(RECOGNISER), ctx.device)
+                  if recognised and not skipped(artifacts / RECOGNISER) else None)
     if actions:  # the action-to-motion protocol: the recogniser, not the T2M evaluator, and its own pair counts
         table = evaluate_action_rows(actions, ctx.store, recogniser, cfg.replications, cfg.seed,
                                      unit_length=cfg.unit_length)
         with atomic_directory(out, owner="evaluate") as tmp:
             write_table(tmp, table, settings, len(test))
         return table
-    embedder = load_evaluator(ctx.trained("train_evaluator"))
+    embedder = load_evaluator(ctx.trained("train_evaluator"), ctx.device)
     skeleton = get_skeleton(params["data"]["skeleton"])
     sem = None
     if scored:

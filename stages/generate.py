@@ -85,7 +85,7 @@ from pipelines.cli import artifacts_dir, check_shared, repo_path
 from pipelines.config import load_params
 from pipelines.feature_store import FeatureStore
 from pipelines.motiondiffuse_family import MotionDiffuseRow, sample_body_parts, sample_time_varied
-from pipelines.registry import FAMILIES, EvalContext, GenerateOptions, family
+from pipelines.registry import FAMILIES, EvalContext, GenerateOptions, family, sampling_device
 
 MODELS = sorted(name for name, entry in FAMILIES.items() if entry.generator is not None)
 #: The family whose generator takes ``--part`` / ``--segment``.
@@ -493,7 +493,8 @@ def sample_all(ctx: EvalContext, generator: Any, request: Request,
 
 def run_request(params: dict[str, Any], request: Request) -> list[Path]:
     """Load the model once, sample every prompt and write one file per prompt; returns the paths."""
-    ctx = EvalContext(params, artifacts_dir(params), repo_path(params, "features.out"))
+    ctx = EvalContext(params, artifacts_dir(params), repo_path(params, "features.out"),
+                      sampling_device(params["sample"]["device"]))
     skeleton = params["data"]["skeleton"]
     targets = [None if request.trajectory is None else prompt_path(request.trajectory, prompt, ctx.store, request.size)
                for prompt in request.prompts]

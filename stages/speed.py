@@ -28,11 +28,11 @@ from pipelines.checkpoint import skipped
 from pipelines.cli import artifacts_dir, repo_path, run_main
 from pipelines.config import check_fields, check_keys, check_number, check_type
 from pipelines.evaluation import EvalConfig, check_protocol, draw
-from pipelines.registry import FAMILIES, EvalContext
+from pipelines.registry import FAMILIES, EvalContext, sampling_device
 from pipelines.speed import TIMED, side_by_side
 from pipelines.tables import write_table
 
-PARAMS = ("evaluate", "features.out", "data.skeleton", "paths.artifacts", "speed",
+PARAMS = ("evaluate", "features.out", "data.skeleton", "paths.artifacts", "speed", "sample.device",
           *dict.fromkeys(key for name in TIMED for key in FAMILIES[name].params))
 OUT = "speed"
 
@@ -69,7 +69,8 @@ def run(params: dict[str, Any]) -> dict[str, dict[str, float]]:
     if untrained:
         print(f"eval_speed: no rows: {untrained[0]} trained nothing")
     else:
-        ctx = EvalContext(params, artifacts, repo_path(params, "features.out"))
+        ctx = EvalContext(params, artifacts, repo_path(params, "features.out"),
+                          sampling_device(params["sample"]["device"]))
         test = ctx.store.split("test")
         wanted = params["speed"]["rows"]
         built = {row.name: row for name in TIMED for row in FAMILIES[name].build_rows(ctx)

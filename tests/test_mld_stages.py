@@ -11,13 +11,17 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
+from standin_device import STANDIN, StandIn
 
 from data.trajectories import make_trajectory
 from models.generator import Generator, TextBatch
+from pipelines.action_evaluation import load_recogniser
 from pipelines.checkpoint import load_final_model
+from pipelines.evaluation import load_evaluator
 from pipelines.latent_cache import collate_words, latent_dataset
 from pipelines.mld_family import MLDGenerator, load_mld, load_vae
-from pipelines.registry import FAMILIES
+from pipelines.registry import FAMILIES, EvalContext, sampling_device
 from pipelines.runner import run_training
 from pipelines.stage import loop_config, train
 from stages import (
@@ -167,13 +171,18 @@ def test_mld_generator_is_seeded_and_zero_padded(trained):
     assert not a[1, 24:].any() and not a[2, 32:].any() and np.abs(a[1, :24]).sum() > 0
 
 
-def test_evaluation_stages_and_report(trained):
-    """Each family's stage writes its rows; the report merges them in registry order after Real."""
+def train_every_family(trained: dict) -> None:
+    """The stages after the fixture's MLD (each resumes at its last step when it has trained already)."""
     train(distill_lcm.STAGE, trained)
     train(train_controlnet.STAGE, trained)
     in_process = copy.deepcopy(trained) | {"ray": trained["ray"] | {"num_workers": 0}}
     for stage in (train_emdm.STAGE, train_emdm_action.STAGE, train_motiondiffuse.STAGE):
         train(stage, in_process)
+
+
+def test_evaluation_stages_and_report(trained):
+    """Each family's stage writes its rows; the report merges them in registry order after Real."""
+    train_every_family(trained)
     rows = {name: evaluate.run(name, trained) for name in ("real", *FAMILIES)}
     assert list(rows["real"]) == ["Real"] and list(rows["baselines"]) == ["Random", "Retrieval"]
     # the names preflight checks evaluate.paraphrase_rows, samples.rows and speed.rows against, from params alone
@@ -218,6 +227,78 @@ def test_evaluation_stages_and_report(trained):
     again = evaluate.run("baselines", trained)
     assert again["Retrieval"]["R_precision_top3"] == rows["baselines"]["Retrieval"]["R_precision_top3"]
     assert again["Random"]["Diversity"] == rows["baselines"]["Random"]["Diversity"]
+
+
+def row_networks(row: object) -> list[torch.nn.Module]:
+    """The networks an evaluation row holds, also through the rows it wraps."""
+    found = []
+    for value in vars(row).values():
+        if isinstance(value, torch.nn.Module):
+            found.append(value)
+        elif hasattr(value, "__dict__") and not isinstance(value, type):
+            found += row_networks(value)
+    return found
+
+
+def untimed(table: dict[str, dict[str, float]]) -> dict[str, dict[str, float]]:
+    """A table without its timing columns (AITS and ms/frame, with their intervals)."""
+    return {row: {k: v for k, v in m.items() if not k.startswith(("AITS_s", "ms_per_frame"))}
+            for row, m in table.items()}
+
+
+def test_every_family_evaluates_on_a_gpu_as_on_the_cpu(trained, monkeypatch):
+    """``sample.device``: every evaluation stage, run with its networks (the rows', the evaluator's and the
+    recogniser's) on a stand-in GPU (tests/standin_device.py: CUDA's rules on mixing devices, the CPU's
+    arithmetic), writes the CPU's table, timing aside; and so do ``eval_speed`` and ``generate``."""
+    train_every_family(trained)
+    names = ("real", *FAMILIES)
+    on_cpu = {name: evaluate.run(name, trained) for name in names}
+    speed_params = trained | {"speed": {"rows": ["EMDM-10", "MotionDiffuse-50"], "rounds": 1}}
+    timed_on_cpu = speed.run(speed_params)
+    out = Path(trained["paths"]["artifacts"]) / "on_device"
+    parts = [("upper", "a person waves"), ("lower", "a person walks forward")]
+    [walk_on_cpu] = generate.generate(trained, "motionlcm-control", ["a person walks"], [40], out / "walk_cpu.npy",
+                                      trajectory="line", refine=True)
+    [parts_on_cpu] = generate.generate(trained, "motiondiffuse", [], [40], out / "parts_cpu.npy", parts=parts)
+    for stage in (evaluate, speed, generate):
+        monkeypatch.setattr(stage, "sampling_device", lambda spec: STANDIN)
+    with StandIn():
+        on_gpu = {name: evaluate.run(name, trained) for name in names}
+        timed_on_gpu = speed.run(speed_params)
+        [walk_on_gpu] = generate.generate(trained, "motionlcm-control", ["a person walks"], [40],
+                                          out / "walk_gpu.npy", trajectory="line", refine=True)
+        [parts_on_gpu] = generate.generate(trained, "motiondiffuse", [], [40], out / "parts_gpu.npy", parts=parts)
+    assert {name: untimed(table) for name, table in on_gpu.items()} == {
+        name: untimed(table) for name, table in on_cpu.items()}
+    artifacts = Path(trained["paths"]["artifacts"])
+    with StandIn():  # ... because every network was on the device (CPU networks would give the same numbers)
+        ctx = EvalContext(trained, artifacts, Path(trained["features"]["out"]), STANDIN)
+        networks = [module for name in FAMILIES for row in FAMILIES[name].build_rows(ctx)
+                    for module in row_networks(row)]
+        networks += [load_evaluator(artifacts / "train_evaluator", STANDIN).evaluator,
+                     load_recogniser(artifacts / evaluate.RECOGNISER, STANDIN)]
+        assert len(networks) >= 10 and {p.device for m in networks for p in [*m.parameters(), *m.buffers()]} == {
+            STANDIN}
+    assert [t["NFE"] for t in timed_on_gpu.values()] == [t["NFE"] for t in timed_on_cpu.values()]
+    np.testing.assert_array_equal(np.load(walk_on_gpu), np.load(walk_on_cpu))
+    np.testing.assert_array_equal(np.load(parts_on_gpu), np.load(parts_on_cpu))
+    with StandIn():  # the stand-in refuses what CUDA refuses: a latent left on the CPU
+        vae = load_vae(Path(trained["paths"]["artifacts"]) / "train_vae", STANDIN)
+        with pytest.raises(RuntimeError, match="stand-in device met a CPU tensor"):
+            vae.decode(torch.zeros(1, vae.config.latent_tokens, vae.config.latent_dim), [8])
+
+
+def test_sample_device_names_the_machines_devices(monkeypatch):
+    assert sampling_device("cpu") == torch.device("cpu")
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    assert sampling_device("auto") == torch.device("cpu")
+    with pytest.raises(ValueError, match=r"sample.device=cuda: this machine has 0 CUDA device\(s\)"):
+        sampling_device("cuda")
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+    monkeypatch.setattr(torch.cuda, "device_count", lambda: 2)
+    assert sampling_device("auto") == torch.device("cuda") and sampling_device("cuda:1") == torch.device("cuda:1")
+    with pytest.raises(ValueError, match="sample.device=cuda:2: this machine has 2 CUDA"):
+        sampling_device("cuda:2")
 
 
 def test_generate_command_writes_joints_and_animation(trained, tmp_path):
