@@ -33,6 +33,7 @@ import json
 import sys
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import asdict, dataclass
+from pathlib import Path
 from typing import Any
 
 from data.atomic import atomic_directory
@@ -77,9 +78,10 @@ class TrainingStage:
 
 
 def ray_storage(params: dict[str, Any]) -> str:
-    """Ray storage for runs and sweeps: ``ray.storage`` if set (path or URI), else ``paths.ray_storage``."""
-    storage = param(params, "ray").get("storage")
-    return resolve_storage(storage or REPO_ROOT / param(params, "paths.ray_storage"))
+    """Ray storage for runs and sweeps: ``ray.storage`` if set (a URI, or a path), else ``paths.ray_storage``; a
+    relative path is relative to the repository, as every path param is (not to the working directory)."""
+    storage = param(params, "ray").get("storage") or param(params, "paths.ray_storage")
+    return resolve_storage(storage if "://" in storage else REPO_ROOT / Path(storage).expanduser())
 
 
 def module_name(name: str) -> str:

@@ -20,9 +20,10 @@ from torch import nn
 from torch.utils.data import TensorDataset
 
 from pipelines.checkpoint import load_final_model, skipped
+from pipelines.config import REPO_ROOT
 from pipelines.identity import fingerprint, module_files
 from pipelines.runner import Components, LoopSettings, StepContext, TrainSpec, run_training
-from pipelines.stage import TrainingStage, loop_config, train, train_unless_skipped
+from pipelines.stage import TrainingStage, loop_config, ray_storage, train, train_unless_skipped
 
 ray.cloudpickle.register_pickle_by_value(sys.modules[__name__])
 
@@ -197,3 +198,16 @@ def test_a_skipped_stage_writes_only_its_reason_and_trains_nothing(tmp_path: Pat
     assert [p.name for p in (tmp_path / "toy").iterdir() if not p.name.startswith(".")] == ["skipped.json"]
     assert skipped(tmp_path / "toy") == "no action labels" and skipped(tmp_path / "elsewhere") is None
     assert train_unless_skipped(stage, params) is None  # a second run replaces its own output
+
+
+def test_ray_storage_paths_are_relative_to_the_repository_as_every_path_param(monkeypatch: pytest.MonkeyPatch,
+                                                                             tmp_path: Path) -> None:
+    monkeypatch.chdir(tmp_path)  # not the working directory: DVC runs from the root, a user anywhere
+    params = {"paths": {"ray_storage": ".ray_storage"}, "ray": {"storage": None}}
+    assert ray_storage(params) == str(REPO_ROOT / ".ray_storage")
+    params["ray"]["storage"] = "shared/runs"
+    assert ray_storage(params) == str(REPO_ROOT / "shared" / "runs")
+    params["ray"]["storage"] = str(tmp_path / "abs")
+    assert ray_storage(params) == str(tmp_path / "abs")
+    params["ray"]["storage"] = "s3://bucket/prefix"
+    assert ray_storage(params) == "s3://bucket/prefix"
