@@ -31,29 +31,11 @@ from pipelines.feature_store import FeatureStore
 WRITTEN_BY = {"train_evaluator_movement": "train_evaluator", "train_evaluator_recogniser": "train_evaluator"}
 
 
-#: ``sample.device`` values: a GPU when one is present, the CPU, or a CUDA device.
-DEVICE_HELP = "auto (a GPU when one is present, else the CPU), cpu, cuda or cuda:<index>"
-
-
-def sampling_device(spec: str) -> torch.device:
-    """The device ``sample.device`` names (:data:`DEVICE_HELP`); ValueError naming the key when it names a GPU
-    that this machine does not have."""
-    if spec == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    device = torch.device(spec)
-    if device.type == "cuda":
-        count = torch.cuda.device_count() if torch.cuda.is_available() else 0
-        index = 0 if device.index is None else device.index
-        if index >= count:
-            raise ValueError(f"sample.device={spec}: this machine has {count} CUDA device(s); "
-                             "use sample.device=auto or cpu")
-    return device
-
-
 @dataclass
 class EvalContext:
     """What a family's functions may use: the params its stage may read, artefacts, the feature store and the
-    device its networks run on (:func:`sampling_device`; the rows take and return NumPy arrays on the host)."""
+    device its networks run on (:func:`pipelines.devices.sampling_device`; the rows take and return NumPy arrays
+    on the host)."""
 
     params: dict[str, Any]
     artifacts: Path

@@ -63,6 +63,7 @@ from data.atomic import atomic_directory, check_output
 from pipelines import checkpoint as ckpt
 from pipelines import tracking
 from pipelines.config import check_number, refuse
+from pipelines.devices import deterministic_gpu
 from pipelines.schedules import EMA, make_scheduler
 
 #: Offset between the RNG seeds of consecutive ranks (a prime, far from small seeds).
@@ -718,29 +719,6 @@ def _train_step(spec: TrainSpec, run: _Run, ctx: StepContext, batch: Any) -> dic
     for name, ema in run.emas.items():
         ema.update(run.raw[name])
     return {k: v.detach() if isinstance(v, torch.Tensor) else float(v) for k, v in {**out, **ctx.extra_metrics}.items()}
-
-
-@contextlib.contextmanager
-def deterministic_gpu(device: torch.device) -> Iterator[None]:
-    """On a GPU, the deterministic kernels the CPU path has, for the scope of a training loop: torch's
-    deterministic algorithms (a warning where an op has none), cuDNN without autotuning and without TF32,
-    and cuBLAS's fixed workspace (``CUBLAS_WORKSPACE_CONFIG``, which CUDA reads once per process, at the first
-    cuBLAS call: a Ray worker's loop makes that call; an in-process run after other GPU work keeps the
-    workspace it had). The previous settings come back afterwards. Nothing changes on the CPU."""
-    if device.type != "cuda":
-        yield
-        return
-    cudnn = torch.backends.cudnn
-    saved = (torch.are_deterministic_algorithms_enabled(), torch.is_deterministic_algorithms_warn_only_enabled(),
-             cudnn.deterministic, cudnn.benchmark, cudnn.allow_tf32)
-    os.environ.setdefault("CUBLAS_WORKSPACE_CONFIG", ":4096:8")
-    torch.use_deterministic_algorithms(True, warn_only=True)
-    cudnn.deterministic, cudnn.benchmark, cudnn.allow_tf32 = True, False, False
-    try:
-        yield
-    finally:
-        torch.use_deterministic_algorithms(saved[0], warn_only=saved[1])
-        cudnn.deterministic, cudnn.benchmark, cudnn.allow_tf32 = saved[2:]
 
 
 def train_loop(session: Session, spec: TrainSpec, config: dict, info: RunInfo) -> None:

@@ -45,6 +45,7 @@ from pipelines.action_evaluation import ActionGenerator, evaluate_action_rows, l
 from pipelines.checkpoint import skipped
 from pipelines.cli import HELP_FLAGS, artifacts_dir, repo_path, run_main
 from pipelines.config import check_fields, check_keys, check_number, check_type, refuse
+from pipelines.devices import deterministic_gpu, device_name, sampling_device
 from pipelines.evaluation import (
     EvalConfig,
     check_protocol,
@@ -55,7 +56,7 @@ from pipelines.evaluation import (
     save_references,
 )
 from pipelines.paraphrase import semantics
-from pipelines.registry import FAMILIES, EvalContext, family, sampling_device
+from pipelines.registry import FAMILIES, EvalContext, family
 from pipelines.tables import write_table
 
 REAL = "real"
@@ -109,13 +110,21 @@ def render_samples(rows: Sequence[Generator], ctx: EvalContext, out: Path) -> No
 
 
 def run(name: str, params: dict[str, Any]) -> dict[str, dict[str, float]]:
-    """Evaluate ``name``'s rows and write ``artifacts/eval/<name>``; returns its rows."""
-    artifacts = artifacts_dir(params)
-    ctx = EvalContext(params, artifacts, repo_path(params, "features.out"), sampling_device(params["sample"]["device"]))
+    """Evaluate ``name``'s rows on ``sample.device`` and write ``artifacts/eval/<name>``; returns its rows."""
+    ctx = EvalContext(params, artifacts_dir(params), repo_path(params, "features.out"),
+                      sampling_device(params["sample"]["device"]))
+    with deterministic_gpu(ctx.device):
+        return score(name, ctx)
+
+
+def score(name: str, ctx: EvalContext) -> dict[str, dict[str, float]]:
+    """:func:`run`'s work, with its networks on ``ctx.device``."""
+    params, artifacts = ctx.params, ctx.artifacts
     cfg = eval_config(params["evaluate"])
     out = artifacts / "eval" / name
     check_output(out, owner="evaluate")
-    settings = asdict(cfg)  # protocol.json, with the test items scored: the report merges tables of one protocol
+    # protocol.json, with the test items scored: the report merges tables of one protocol and one device
+    settings = asdict(cfg) | {"device": device_name(ctx.device)}
     untrained = [] if name == REAL else [(stage, reason) for stage in family(name).train_stages
                                          if (reason := skipped(artifacts / stage))]
     if untrained:  # e.g. the action stages on a dataset without action labels

@@ -83,9 +83,10 @@ from models.motiondiffuse import PART_UNIONS, REST
 from models.motionlcm import TIMESTEPS as LCM_STEPS
 from pipelines.cli import artifacts_dir, check_shared, repo_path
 from pipelines.config import load_params
+from pipelines.devices import deterministic_gpu, sampling_device
 from pipelines.feature_store import FeatureStore
 from pipelines.motiondiffuse_family import MotionDiffuseRow, sample_body_parts, sample_time_varied
-from pipelines.registry import FAMILIES, EvalContext, GenerateOptions, family, sampling_device
+from pipelines.registry import FAMILIES, EvalContext, GenerateOptions, family
 
 MODELS = sorted(name for name, entry in FAMILIES.items() if entry.generator is not None)
 #: The family whose generator takes ``--part`` / ``--segment``.
@@ -504,12 +505,14 @@ def run_request(params: dict[str, Any], request: Request) -> list[Path]:
               "on a CPU this takes minutes", file=sys.stderr, flush=True)
     if request.parts or request.segments:
         [prompt] = request.prompts
-        motion, caption = generate_composed(ctx, generator, request.parts, request.segments, prompt.length,
-                                            request.seed)
+        with deterministic_gpu(ctx.device):
+            motion, caption = generate_composed(ctx, generator, request.parts, request.segments, prompt.length,
+                                                request.seed)
         [joints] = ctx.store.to_joints(motion, [prompt.length])
         check_finite(joints, prompt, request)
         return write_all([(joints, request.paths[0], caption, skeleton, None)])
-    all_joints = sample_all(ctx, generator, request, targets)
+    with deterministic_gpu(ctx.device):
+        all_joints = sample_all(ctx, generator, request, targets)
     bones = get_skeleton(skeleton)
     jobs = []
     for joints, path, prompt, target in zip(all_joints, request.paths, request.prompts, targets, strict=True):

@@ -27,8 +27,9 @@ from models.generator import Generator
 from pipelines.checkpoint import skipped
 from pipelines.cli import artifacts_dir, repo_path, run_main
 from pipelines.config import check_fields, check_keys, check_number, check_type
+from pipelines.devices import deterministic_gpu, device_name, sampling_device
 from pipelines.evaluation import EvalConfig, check_protocol, draw
-from pipelines.registry import FAMILIES, EvalContext, sampling_device
+from pipelines.registry import FAMILIES, EvalContext
 from pipelines.speed import TIMED, side_by_side
 from pipelines.tables import write_table
 
@@ -66,11 +67,11 @@ def run(params: dict[str, Any]) -> dict[str, dict[str, float]]:
     table: dict[str, dict[str, float]] = {}
     cfg = EvalConfig(**timing_section(params))
     test: list = []
+    device = sampling_device(params["sample"]["device"])
     if untrained:
         print(f"eval_speed: no rows: {untrained[0]} trained nothing")
     else:
-        ctx = EvalContext(params, artifacts, repo_path(params, "features.out"),
-                          sampling_device(params["sample"]["device"]))
+        ctx = EvalContext(params, artifacts, repo_path(params, "features.out"), device)
         test = ctx.store.split("test")
         wanted = params["speed"]["rows"]
         built = {row.name: row for name in TIMED for row in FAMILIES[name].build_rows(ctx)
@@ -80,10 +81,11 @@ def run(params: dict[str, Any]) -> dict[str, dict[str, float]]:
             raise ValueError(f"speed.rows: no generator row(s) {missing} in the families {list(TIMED)} "
                              f"(their rows: {sorted(built)})")
         d = draw(test, np.random.default_rng([cfg.seed, cfg.replications]), cfg.unit_length)
-        table = side_by_side([built[name] for name in wanted], d, cfg,
-                             get_skeleton(params["data"]["skeleton"]).joints_num, params["speed"]["rounds"])
+        with deterministic_gpu(device):
+            table = side_by_side([built[name] for name in wanted], d, cfg,
+                                 get_skeleton(params["data"]["skeleton"]).joints_num, params["speed"]["rounds"])
     with atomic_directory(out, owner="speed") as tmp:
-        write_table(tmp, table, asdict(cfg), len(test))
+        write_table(tmp, table, asdict(cfg) | {"device": device_name(device)}, len(test))
     return table
 
 

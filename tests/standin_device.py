@@ -2,13 +2,17 @@
 
 :class:`StandIn` is a torch function mode under which ``STANDIN`` (torch's ``meta`` device) behaves as a GPU
 whose tensors hold their data on the CPU: ``module.to(STANDIN)``, ``tensor.to(STANDIN)`` and factory functions
-with ``device=STANDIN`` give :class:`OnStandIn` tensors, whose ``device`` is ``STANDIN``. As CUDA does, an
-operation that mixes them with CPU tensors of one or more dimensions raises (indexing with a CPU integer or
-boolean tensor, packing sequences with CPU lengths and copying a CPU tensor into them are allowed, as CUDA
-allows them), and ``.numpy()``
-refuses them; ``.cpu()`` and ``.to("cpu")``
-bring them back. Their arithmetic is the CPU's, so a computation run on the stand-in gives the CPU's numbers
-bit for bit: a test can compare the two.
+with ``device=STANDIN`` give :class:`OnStandIn` tensors, whose ``device`` is ``STANDIN`` (``"cuda"`` names it
+too). As CUDA does, an operation that mixes them with CPU tensors of one or more dimensions raises (and
+concatenation with any CPU tensor); indexing a device tensor with CPU integer or boolean indices, packing
+sequences with CPU lengths and copying a CPU tensor into a device one are allowed, and their reverses refused;
+a CPU generator cannot draw on the device; ``.numpy()`` and ``np.asarray`` refuse device tensors, and
+``.cpu()`` and ``.to("cpu")`` bring them back.
+
+Their arithmetic is the CPU's, so a computation on the stand-in gives the CPU's numbers up to the kernel a
+tensor subclass may take (a non-contiguous input to ``F.linear``: differences near 1e-7); a test compares the
+two with a tolerance. What the stand-in cannot show: CUDA's own kernels (cuDNN, TF32, the attention backends),
+its memory, and code that tests ``device.type == "cuda"``.
 """
 
 from __future__ import annotations
@@ -26,6 +30,8 @@ CPU_INTEGERS = frozenset({"__getitem__", "__setitem__", "index_put_", "_pack_pad
                           "gru", "lstm", "rnn_tanh", "rnn_relu"})
 #: Operations that may copy a CPU tensor into a device tensor (CUDA allows it).
 COPYING = frozenset({"copy_", "__setitem__"})
+#: Operations that refuse even a 0-dimensional CPU tensor beside device tensors.
+CONCATENATING = frozenset({"cat", "concat", "concatenate", "stack", "hstack", "vstack"})
 
 
 class OnStandIn(torch.Tensor):
@@ -43,7 +49,7 @@ def _target(args: tuple, kwargs: dict[str, Any]) -> torch.device | None:
     """The device a ``Tensor.to`` call asks for, or None (a dtype change only)."""
     for arg in (*args[1:], kwargs.get("device"), kwargs.get("other")):
         if isinstance(arg, str | torch.device):
-            return torch.device(arg)
+            return STANDIN if torch.device(arg).type == "cuda" else torch.device(arg)
         if isinstance(arg, torch.Tensor):
             return STANDIN if type(arg) is OnStandIn else torch.device("cpu")
     return None
@@ -79,16 +85,24 @@ class StandIn(TorchFunctionMode):
                 if target is None:
                     target = STANDIN if on_standin else torch.device("cpu")
                 return out.as_subclass(OnStandIn if target.type == STANDIN.type else torch.Tensor)
-            if name == "numpy" and on_standin:
+            if name in ("numpy", "__array__") and on_standin:
                 raise TypeError("can't convert a stand-in device tensor to numpy: use .cpu() first")
-            factory = kwargs.get("device") is not None and torch.device(kwargs["device"]).type == STANDIN.type
+            device = kwargs.get("device")
+            factory = device is not None and torch.device(device).type in (STANDIN.type, "cuda")
             if factory:
+                generator = kwargs.get("generator")
+                if generator is not None and generator.device.type == "cpu":
+                    raise RuntimeError(f"{name}: a CPU generator cannot draw on the stand-in device")
                 kwargs["device"] = "cpu"
             tensors = [x for x in pytree.tree_flatten((args, kwargs))[0] if isinstance(x, torch.Tensor)]
             mixed = any(type(x) is OnStandIn for x in tensors)
             if mixed:
+                if name == "_pack_padded_sequence" and type(args[1]) is OnStandIn:
+                    raise RuntimeError(f"{name}: the lengths must be a CPU tensor")
+                if name in CPU_INTEGERS and not on_standin:
+                    raise RuntimeError(f"{name}: a CPU tensor with indices on the stand-in device")
                 cpu = [] if name in COPYING and on_standin else [
-                    x for x in tensors if type(x) is not OnStandIn and x.dim() > 0
+                    x for x in tensors if type(x) is not OnStandIn and (x.dim() > 0 or name in CONCATENATING)
                     and not (name in CPU_INTEGERS and not x.is_floating_point())]
                 if cpu:
                     raise RuntimeError(f"{name}: a tensor on the stand-in device met a CPU tensor of shape "

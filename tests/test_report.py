@@ -268,6 +268,10 @@ def test_a_family_scored_with_other_settings_than_real_is_refused(artifacts: Pat
     assert str(err.value) == (f"{path}: scored with another protocol than real (test_items 100 against 452; mm_times "
                               "2 against 10): run `dvc repro eval_emdm` to score it again with the same settings")
     assert {name: (artifacts / "eval" / name).read_bytes() for name in report_stage.OUTPUTS} == before
+    path.write_text(json.dumps(protocol | {"device": "cuda NVIDIA H100"}))  # sample.device: its numbers differ too
+    with pytest.raises(ValueError, match=r"emdm/protocol.json: scored with another protocol than real \(device "
+                                         r"'cuda NVIDIA H100' against 'cpu'\)"):
+        report_stage.run({"paths": {"artifacts": str(artifacts)}})
     (artifacts / "eval" / "emdm" / "metrics.json").write_text("{}\n")  # trained nothing: no rows to mix
     report_stage.run({"paths": {"artifacts": str(artifacts)}})
     path.write_text(json.dumps(protocol))

@@ -45,7 +45,6 @@ from pipelines.runner import (
     _Window,
     bucket_by_length,
     decide_use_gpu,
-    deterministic_gpu,
     epoch_seed,
     fit_retrying,
     make_run_name,
@@ -416,23 +415,6 @@ def test_an_in_process_run_refuses_use_gpu_true_without_a_gpu(tmp_path: Path) ->
     opts = RayOptions.from_dict({"num_workers": 0, "use_gpu": True})
     with pytest.raises(ValueError, match="use_gpu=true but this machine has no CUDA GPU"):
         _fit_local(STAGE, SPEC, BASE, opts, str(tmp_path), None)
-
-
-def test_gpu_runs_ask_for_deterministic_kernels_for_the_loop_only(monkeypatch: pytest.MonkeyPatch) -> None:
-    """On a GPU the loop's scope turns on what the CPU path has by default, and restores the settings after; on
-    the CPU it changes nothing."""
-    cudnn = torch.backends.cudnn
-    monkeypatch.setenv("CUBLAS_WORKSPACE_CONFIG", "")  # recorded, so the test leaves the variable as it found it
-    monkeypatch.delenv("CUBLAS_WORKSPACE_CONFIG")
-    before = (torch.are_deterministic_algorithms_enabled(), cudnn.deterministic, cudnn.benchmark, cudnn.allow_tf32)
-    with deterministic_gpu(torch.device("cpu")):
-        assert "CUBLAS_WORKSPACE_CONFIG" not in os.environ and not torch.are_deterministic_algorithms_enabled()
-    with deterministic_gpu(torch.device("cuda", 0)):
-        assert os.environ["CUBLAS_WORKSPACE_CONFIG"] == ":4096:8"
-        assert torch.are_deterministic_algorithms_enabled() and torch.is_deterministic_algorithms_warn_only_enabled()
-        assert cudnn.deterministic and not cudnn.benchmark and not cudnn.allow_tf32
-    after = (torch.are_deterministic_algorithms_enabled(), cudnn.deterministic, cudnn.benchmark, cudnn.allow_tf32)
-    assert after == before
 
 
 def test_wandb_runs_go_to_the_dvc_workspace(monkeypatch: pytest.MonkeyPatch) -> None:
