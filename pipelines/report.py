@@ -81,8 +81,12 @@ class Section:
 
 
 def report_title(meta: dict[str, Any]) -> str:
-    """What was evaluated: the dataset, its test items and the replications."""
-    return f"Evaluation on {meta['dataset']} ({meta['test_items']} test items, {meta['replications']} replications)"
+    """What was evaluated: the dataset, its test items and the replications, and the GPU the networks ran on
+    when they did (``sample.device``; its timing columns are that GPU's)."""
+    device = meta.get("device", "cpu")
+    where = "" if device == "cpu" else f", networks on {device}"
+    return (f"Evaluation on {meta['dataset']} ({meta['test_items']} test items, {meta['replications']} "
+            f"replications{where})")
 
 
 def report_sections(table: dict[str, dict[str, float]], speed: dict[str, dict[str, float]] | None = None

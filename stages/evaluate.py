@@ -159,7 +159,8 @@ def score(name: str, ctx: EvalContext) -> dict[str, dict[str, float]]:
     if name == REAL:
         refs = references(test, embedder, cfg)
         table = evaluate(refs, test, ctx.store.mean, ctx.store.std, embedder, skeleton, cfg, real=True, semantics=sem)
-        meta = {"dataset": params["data"]["name"], "test_items": len(test), "replications": cfg.replications}
+        meta = {"dataset": params["data"]["name"], "test_items": len(test), "replications": cfg.replications,
+                "device": settings["device"]}
         with atomic_directory(out, owner="evaluate") as tmp:
             save_references(tmp / REFERENCES, refs)
             (tmp / "meta.json").write_text(json.dumps(meta, indent=2) + "\n")

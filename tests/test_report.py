@@ -19,7 +19,7 @@ from pathlib import Path
 import pytest
 from PIL import Image
 
-from pipelines.report import merge_tables, report_markdown, report_sections, table_cells
+from pipelines.report import merge_tables, report_markdown, report_sections, report_title, table_cells
 from pipelines.report_html import report_html
 from stages import report as report_stage
 
@@ -106,6 +106,14 @@ def test_report_markdown_is_the_real_runs_report() -> None:
     meta = json.loads((FIXTURE / "real" / "meta.json").read_text())
     speed = json.loads((FIXTURE / report_stage.SPEED / "metrics.json").read_text())
     assert report_markdown(merge_tables(tables), meta, speed) == (FIXTURE / "report.md").read_text(encoding="utf-8")
+
+
+def test_the_title_names_the_gpu_the_networks_ran_on() -> None:
+    meta = json.loads((FIXTURE / "real" / "meta.json").read_text())
+    assert report_title(meta) == "Evaluation on synthetic (452 test items, 3 replications)"
+    assert report_title(meta | {"device": "cpu"}) == report_title(meta)
+    assert report_title(meta | {"device": "cuda NVIDIA H100"}) == (
+        "Evaluation on synthetic (452 test items, 3 replications, networks on cuda NVIDIA H100)")
 
 
 def test_the_speed_table_comes_last_with_its_columns_and_only_when_it_has_rows() -> None:
