@@ -17,14 +17,16 @@ from __future__ import annotations
 
 import importlib
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from functools import cached_property
 from pathlib import Path
 from typing import Any
 
 import torch
 
-from models.generator import Generator, Reconstructor
+from models.generator import CPU, Generator, Reconstructor
+from pipelines.cli import artifacts_dir, repo_path
+from pipelines.devices import sampling_device
 from pipelines.feature_store import FeatureStore
 
 #: Training runs whose output folder is written by a DVC stage of another name.
@@ -40,7 +42,13 @@ class EvalContext:
     params: dict[str, Any]
     artifacts: Path
     features: Path
-    device: torch.device = field(default_factory=lambda: torch.device("cpu"))
+    device: torch.device = CPU
+
+    @classmethod
+    def from_params(cls, params: dict[str, Any]) -> EvalContext:
+        """A stage's context: ``paths.artifacts``, ``features.out`` and the device ``sample.device`` names."""
+        return cls(params, artifacts_dir(params), repo_path(params, "features.out"),
+                   sampling_device(params["sample"]["device"]))
 
     @cached_property
     def store(self) -> FeatureStore:

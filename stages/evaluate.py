@@ -43,9 +43,9 @@ from data.skeleton import get_skeleton
 from models.generator import Generator, Reconstructor
 from pipelines.action_evaluation import ActionGenerator, evaluate_action_rows, load_recogniser
 from pipelines.checkpoint import skipped
-from pipelines.cli import HELP_FLAGS, artifacts_dir, repo_path, run_main
+from pipelines.cli import HELP_FLAGS, repo_path, run_main
 from pipelines.config import check_fields, check_keys, check_number, check_type, refuse
-from pipelines.devices import deterministic_gpu, device_name, sampling_device
+from pipelines.devices import deterministic_gpu, device_name
 from pipelines.evaluation import (
     EvalConfig,
     check_protocol,
@@ -111,8 +111,7 @@ def render_samples(rows: Sequence[Generator], ctx: EvalContext, out: Path) -> No
 
 def run(name: str, params: dict[str, Any]) -> dict[str, dict[str, float]]:
     """Evaluate ``name``'s rows on ``sample.device`` and write ``artifacts/eval/<name>``; returns its rows."""
-    ctx = EvalContext(params, artifacts_dir(params), repo_path(params, "features.out"),
-                      sampling_device(params["sample"]["device"]))
+    ctx = EvalContext.from_params(params)
     with deterministic_gpu(ctx.device):
         return score(name, ctx)
 

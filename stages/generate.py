@@ -81,9 +81,9 @@ from data.trajectories import SHAPES, load_trajectory, make_trajectory
 from models.generator import Hint
 from models.motiondiffuse import PART_UNIONS, REST
 from models.motionlcm import TIMESTEPS as LCM_STEPS
-from pipelines.cli import artifacts_dir, check_shared, repo_path
+from pipelines.cli import check_shared, repo_path
 from pipelines.config import load_params
-from pipelines.devices import deterministic_gpu, sampling_device
+from pipelines.devices import deterministic_gpu
 from pipelines.feature_store import FeatureStore
 from pipelines.motiondiffuse_family import MotionDiffuseRow, sample_body_parts, sample_time_varied
 from pipelines.registry import FAMILIES, EvalContext, GenerateOptions, family
@@ -494,8 +494,7 @@ def sample_all(ctx: EvalContext, generator: Any, request: Request,
 
 def run_request(params: dict[str, Any], request: Request) -> list[Path]:
     """Load the model once, sample every prompt and write one file per prompt; returns the paths."""
-    ctx = EvalContext(params, artifacts_dir(params), repo_path(params, "features.out"),
-                      sampling_device(params["sample"]["device"]))
+    ctx = EvalContext.from_params(params)
     skeleton = params["data"]["skeleton"]
     targets = [None if request.trajectory is None else prompt_path(request.trajectory, prompt, ctx.store, request.size)
                for prompt in request.prompts]

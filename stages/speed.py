@@ -25,9 +25,9 @@ from data.atomic import atomic_directory, check_output
 from data.skeleton import get_skeleton
 from models.generator import Generator
 from pipelines.checkpoint import skipped
-from pipelines.cli import artifacts_dir, repo_path, run_main
+from pipelines.cli import artifacts_dir, run_main
 from pipelines.config import check_fields, check_keys, check_number, check_type
-from pipelines.devices import deterministic_gpu, device_name, sampling_device
+from pipelines.devices import deterministic_gpu, device_name
 from pipelines.evaluation import EvalConfig, check_protocol, draw
 from pipelines.registry import FAMILIES, EvalContext
 from pipelines.speed import TIMED, side_by_side
@@ -67,11 +67,10 @@ def run(params: dict[str, Any]) -> dict[str, dict[str, float]]:
     table: dict[str, dict[str, float]] = {}
     cfg = EvalConfig(**timing_section(params))
     test: list = []
-    device = sampling_device(params["sample"]["device"])
+    ctx = EvalContext.from_params(params)
     if untrained:
         print(f"eval_speed: no rows: {untrained[0]} trained nothing")
     else:
-        ctx = EvalContext(params, artifacts, repo_path(params, "features.out"), device)
         test = ctx.store.split("test")
         wanted = params["speed"]["rows"]
         built = {row.name: row for name in TIMED for row in FAMILIES[name].build_rows(ctx)
@@ -81,11 +80,11 @@ def run(params: dict[str, Any]) -> dict[str, dict[str, float]]:
             raise ValueError(f"speed.rows: no generator row(s) {missing} in the families {list(TIMED)} "
                              f"(their rows: {sorted(built)})")
         d = draw(test, np.random.default_rng([cfg.seed, cfg.replications]), cfg.unit_length)
-        with deterministic_gpu(device):
+        with deterministic_gpu(ctx.device):
             table = side_by_side([built[name] for name in wanted], d, cfg,
                                  get_skeleton(params["data"]["skeleton"]).joints_num, params["speed"]["rounds"])
     with atomic_directory(out, owner="speed") as tmp:
-        write_table(tmp, table, asdict(cfg) | {"device": device_name(device)}, len(test))
+        write_table(tmp, table, asdict(cfg) | {"device": device_name(ctx.device)}, len(test))
     return table
 
 

@@ -16,6 +16,7 @@ from standin_device import STANDIN, StandIn
 
 from data.trajectories import make_trajectory
 from models.generator import Generator, TextBatch
+from pipelines import registry
 from pipelines.action_evaluation import load_recogniser
 from pipelines.checkpoint import load_final_model
 from pipelines.evaluation import load_evaluator
@@ -255,9 +256,9 @@ def test_every_family_evaluates_on_a_gpu_as_on_the_cpu(trained, monkeypatch, tmp
     artifacts = Path(trained["paths"]["artifacts"])
     local = copy.deepcopy(trained)  # the trained models, in a folder of its own: the module's eval/ stays the CPU's
     local["paths"]["artifacts"] = str(tmp_path / "artifacts")
+    (tmp_path / "artifacts").mkdir()
     for folder in artifacts.iterdir():
         if folder.name.startswith("train_") or folder.name == "distill_lcm":
-            (tmp_path / "artifacts").mkdir(exist_ok=True)
             (tmp_path / "artifacts" / folder.name).symlink_to(folder)
     names = ("real", *FAMILIES)
     on_cpu = {name: evaluate.run(name, local) for name in names}
@@ -268,8 +269,7 @@ def test_every_family_evaluates_on_a_gpu_as_on_the_cpu(trained, monkeypatch, tmp
     [walk_on_cpu] = generate.generate(local, "motionlcm-control", ["a person walks"], [40], out / "walk_cpu.npy",
                                       trajectory="line", refine=True)
     [parts_on_cpu] = generate.generate(local, "motiondiffuse", [], [40], out / "parts_cpu.npy", parts=parts)
-    for stage in (evaluate, speed, generate):
-        monkeypatch.setattr(stage, "sampling_device", lambda spec: STANDIN)
+    monkeypatch.setattr(registry, "sampling_device", lambda spec: STANDIN)  # sample.device, as every stage reads it
     with StandIn():
         on_gpu = {name: evaluate.run(name, local) for name in names}
         timed_on_gpu = speed.run(speed_params)
