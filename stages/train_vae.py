@@ -22,16 +22,7 @@ import torch
 from data.motion_dataset import MotionTextDataset, collate_trimmed
 from models.vae import MotionVAE, MotionVAEConfig, vae_loss
 from pipelines.cli import repo_path
-from pipelines.config import (
-    check_choice,
-    check_fields,
-    check_heads,
-    check_keys,
-    check_number,
-    check_odd,
-    is_integer,
-    refuse,
-)
+from pipelines.config import check_choice, check_fields, check_heads, check_keys, check_number, check_odd, refuse
 from pipelines.feature_store import FeatureStore
 from pipelines.runner import Components, StepContext, TrainSpec
 from pipelines.stage import TrainingStage, checks, loop_config, main
@@ -101,7 +92,7 @@ def check_model(model: dict[str, Any], crop_frames: Any, below: Any) -> None:
     if isinstance(offset, float) and not math.isfinite(offset):
         refuse(f"{where}.logvar_offset: expected a finite number, got {offset!r}")
     tokens, positions = given["latent_tokens"], given["max_len"]
-    if given["pos_encoding"] == "learned" and all(is_integer(n) for n in (tokens, positions, crop_frames, below)):
+    if given["pos_encoding"] == "learned" and all(type(n) is int for n in (tokens, positions, crop_frames, below)):
         needed = 2 * tokens + max(crop_frames, below - 1)
         if positions < needed:
             refuse(f"{where}.max_len: the learned positional encoding holds {positions} positions, the encoder "
