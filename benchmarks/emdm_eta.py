@@ -25,6 +25,7 @@ from torch import Tensor
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from models.diffusion import gather  # noqa: E402
 from models.emdm import EMDMSchedule  # noqa: E402
 from pipelines.cli import artifacts_dir, repo_path  # noqa: E402
 from pipelines.config import load_params  # noqa: E402
@@ -35,9 +36,9 @@ from pipelines.validation import generator_scores  # noqa: E402
 
 def ddim_step(schedule: EMDMSchedule, x0: Tensor, x_next: Tensor, t: Tensor, noise: Tensor, eta: float) -> Tensor:
     """The module docstring's update from level t + 1 to level t (t = 0: x0_hat, as the posterior)."""
-    a = schedule._gather(schedule.alphas_cumprod[1:], t, x_next)
-    a_prev = schedule._gather(schedule.alphas_cumprod[:-1], t, x_next)
-    s2 = eta**2 * schedule._gather(schedule.posterior_variance, t, x_next)
+    a = gather(schedule.alphas_cumprod[1:], t, x_next)
+    a_prev = gather(schedule.alphas_cumprod[:-1], t, x_next)
+    s2 = eta**2 * gather(schedule.posterior_variance, t, x_next)
     eps = (x_next - a.sqrt() * x0) / (1.0 - a).sqrt()
     return a_prev.sqrt() * x0 + (1.0 - a_prev - s2).clamp(min=0.0).sqrt() * eps + s2.sqrt() * noise
 

@@ -18,14 +18,18 @@ Conventions (the diffusers / guided-diffusion ones):
   ``"v_prediction"`` (``v = sqrt(ab) eps - sqrt(1 - ab) x0``, Salimans & Ho 2022). Networks never own
   samplers.
 - Schedules are computed and stored in float64; values gathered at ``t`` are cast to the dtype and
-  device of the tensor they multiply.
+  device of the tensor they multiply. A gather happens on its table's device. The samplers move their
+  schedule to the device of ``x`` once (:meth:`NoiseSchedule.to`) and index it with Python ints or
+  device timesteps, so that on a GPU no step reads a timestep back to the host or copies a coefficient
+  to the device (each would wait for the GPU's queue to drain); only the noise a CPU generator draws is
+  copied over (:mod:`models.rng`).
 """
 
 from __future__ import annotations
 
 import math
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, fields, replace
 from typing import Any, Literal, NamedTuple
 
 import torch
@@ -140,7 +144,8 @@ def make_betas(name: str, num_steps: int, **kwargs: Any) -> Tensor:
 
 
 def _as_long(t: Timesteps) -> Tensor:
-    return torch.as_tensor(t).detach().to("cpu", torch.long)
+    """``t`` as an int64 tensor where it is (a Python int: on the CPU)."""
+    return torch.as_tensor(t).detach().long()
 
 
 def _bcast(values: Tensor, like: Tensor) -> Tensor:
@@ -149,10 +154,19 @@ def _bcast(values: Tensor, like: Tensor) -> Tensor:
     return values.reshape(-1, *([1] * (like.ndim - 1)))
 
 
-def _gather(values: Tensor, t: Timesteps, like: Tensor) -> Tensor:
-    """``values[t]`` broadcast against ``like`` (indexing on CPU; float64 tables never leave the CPU)."""
-    idx = _as_long(t)
-    if idx.numel() and (int(idx.min()) < 0 or int(idx.max()) >= values.shape[0]):
+def gather(values: Tensor, t: Timesteps, like: Tensor) -> Tensor:
+    """``values[t]`` broadcast against ``like``, indexed on the table's device.
+
+    A Python int selects without a copy; timesteps on another device than the table are moved to it (a
+    read back to the host when the table is on the CPU and ``t`` on a GPU). Out-of-range timesteps raise
+    an IndexError here when they are a Python int or on the CPU; on a GPU the indexing kernel refuses
+    them (checking them here would read them back at every step)."""
+    if isinstance(t, int):
+        if not 0 <= t < values.shape[0]:
+            raise IndexError(f"timestep out of range [0, {values.shape[0] - 1}]: {t}")
+        return _bcast(values[t], like)
+    idx = _as_long(t).to(values.device)
+    if idx.device.type == "cpu" and idx.numel() and (int(idx.min()) < 0 or int(idx.max()) >= values.shape[0]):
         raise IndexError(f"timestep out of range [0, {values.shape[0] - 1}]: {idx.tolist()}")
     return _bcast(values[idx], like)
 
@@ -248,15 +262,22 @@ class NoiseSchedule:
     def num_steps(self) -> int:
         return int(self.betas.shape[0])
 
+    def to(self, device: torch.device | str) -> NoiseSchedule:
+        """This schedule with every table on ``device`` (itself when they are there already)."""
+        device = torch.device(device)
+        if self.betas.device == device:
+            return self
+        return replace(self, **{f.name: getattr(self, f.name).to(device) for f in fields(self) if f.name != "name"})
+
     # ---------------------------------------------------------------------------------- forward process
     def q_sample(self, x0: Tensor, t: Timesteps, noise: Tensor) -> Tensor:
         """Sample ``q(x_t | x0)``: ``x_t = sqrt(ab_t) x0 + sqrt(1 - ab_t) noise`` (DDPM Eq. 4). Shapes (B, ...)."""
-        a, s = _gather(self.sqrt_alphas_cumprod, t, x0), _gather(self.sqrt_one_minus_alphas_cumprod, t, x0)
+        a, s = gather(self.sqrt_alphas_cumprod, t, x0), gather(self.sqrt_one_minus_alphas_cumprod, t, x0)
         return a * x0 + s * noise
 
     def q_mean_variance(self, x0: Tensor, t: Timesteps) -> tuple[Tensor, Tensor]:
         """Mean ``sqrt(ab_t) x0`` and variance ``1 - ab_t`` (broadcastable) of ``q(x_t | x0)``."""
-        return _gather(self.sqrt_alphas_cumprod, t, x0) * x0, _gather(1.0 - self.alphas_cumprod, t, x0)
+        return gather(self.sqrt_alphas_cumprod, t, x0) * x0, gather(1.0 - self.alphas_cumprod, t, x0)
 
     def q_sample_pair(self, x0: Tensor, t: Timesteps, noise_prev: Tensor, noise_step: Tensor) -> tuple[Tensor, Tensor]:
         """Consecutive pair ``(x_{t-1}, x_t)`` of one forward trajectory (DDGAN's ``q_sample_pairs``).
@@ -267,13 +288,13 @@ class NoiseSchedule:
         t = _as_long(t)
         prev = self.q_sample(x0, (t - 1).clamp(min=0), noise_prev)
         x_prev = torch.where(_bcast(t == 0, x0).bool(), x0, prev)
-        x_t = _gather(self.alphas.sqrt(), t, x0) * x_prev + _gather(self.betas.sqrt(), t, x0) * noise_step
+        x_t = gather(self.alphas.sqrt(), t, x0) * x_prev + gather(self.betas.sqrt(), t, x0) * noise_step
         return x_prev, x_t
 
     def posterior_mean_variance(self, x0: Tensor, x_t: Tensor, t: Timesteps) -> tuple[Tensor, Tensor, Tensor]:
         """Mean, variance and clipped log-variance of ``q(x_{t-1} | x_t, x0)`` (DDPM Eqs. 6-7)."""
-        mean = _gather(self.posterior_mean_coef1, t, x_t) * x0 + _gather(self.posterior_mean_coef2, t, x_t) * x_t
-        return mean, _gather(self.posterior_variance, t, x_t), _gather(self.posterior_log_variance_clipped, t, x_t)
+        mean = gather(self.posterior_mean_coef1, t, x_t) * x0 + gather(self.posterior_mean_coef2, t, x_t) * x_t
+        return mean, gather(self.posterior_variance, t, x_t), gather(self.posterior_log_variance_clipped, t, x_t)
 
     def q_posterior_sample(self, x0: Tensor, x_t: Tensor, t: Timesteps, noise: Tensor) -> Tensor:
         """Sample ``q(x_{t-1} | x_t, x0)``; no noise where t = 0 (DDGAN ``sample_posterior``, EMDM's fake x_t)."""
@@ -284,26 +305,26 @@ class NoiseSchedule:
     # ---------------------------------------------------------------------------------- conversions
     def predict_x0_from_eps(self, x_t: Tensor, t: Timesteps, eps: Tensor) -> Tensor:
         """``x0 = (x_t - sqrt(1 - ab_t) eps) / sqrt(ab_t)`` (DDPM Eq. 4 solved for x0)."""
-        recip = _gather(self.sqrt_recip_alphas_cumprod, t, x_t)
-        recipm1 = _gather(self.sqrt_recipm1_alphas_cumprod, t, x_t)
+        recip = gather(self.sqrt_recip_alphas_cumprod, t, x_t)
+        recipm1 = gather(self.sqrt_recipm1_alphas_cumprod, t, x_t)
         return recip * x_t - recipm1 * eps
 
     def predict_eps_from_x0(self, x_t: Tensor, t: Timesteps, x0: Tensor) -> Tensor:
         """``eps = (x_t - sqrt(ab_t) x0) / sqrt(1 - ab_t)``."""
-        a, s = _gather(self.sqrt_alphas_cumprod, t, x_t), _gather(self.sqrt_one_minus_alphas_cumprod, t, x_t)
+        a, s = gather(self.sqrt_alphas_cumprod, t, x_t), gather(self.sqrt_one_minus_alphas_cumprod, t, x_t)
         return (x_t - a * x0) / s
 
     def v_from(self, x0: Tensor, eps: Tensor, t: Timesteps) -> Tensor:
         """Velocity target ``v = sqrt(ab_t) eps - sqrt(1 - ab_t) x0`` (Salimans & Ho 2022, Sec. 4)."""
-        return _gather(self.sqrt_alphas_cumprod, t, x0) * eps - _gather(self.sqrt_one_minus_alphas_cumprod, t, x0) * x0
+        return gather(self.sqrt_alphas_cumprod, t, x0) * eps - gather(self.sqrt_one_minus_alphas_cumprod, t, x0) * x0
 
     def predict_x0_from_v(self, x_t: Tensor, t: Timesteps, v: Tensor) -> Tensor:
         """``x0 = sqrt(ab_t) x_t - sqrt(1 - ab_t) v``."""
-        return _gather(self.sqrt_alphas_cumprod, t, x_t) * x_t - _gather(self.sqrt_one_minus_alphas_cumprod, t, x_t) * v
+        return gather(self.sqrt_alphas_cumprod, t, x_t) * x_t - gather(self.sqrt_one_minus_alphas_cumprod, t, x_t) * v
 
     def predict_eps_from_v(self, x_t: Tensor, t: Timesteps, v: Tensor) -> Tensor:
         """``eps = sqrt(1 - ab_t) x_t + sqrt(ab_t) v``."""
-        return _gather(self.sqrt_one_minus_alphas_cumprod, t, x_t) * x_t + _gather(self.sqrt_alphas_cumprod, t, x_t) * v
+        return gather(self.sqrt_one_minus_alphas_cumprod, t, x_t) * x_t + gather(self.sqrt_alphas_cumprod, t, x_t) * v
 
     def split_prediction(
         self,
@@ -318,7 +339,7 @@ class NoiseSchedule:
         ``clip_x0`` clamps x0 to ``[-clip_x0, clip_x0]`` and re-derives eps from the clamped x0 (diffusers'
         ``clip_sample`` with ``use_clipped_model_output=True``). MLD and MotionDiffuse do not clip.
         """
-        x0, eps = split_prediction_at(model_out, x_t, _gather(self.alphas_cumprod, t, x_t), prediction_type)
+        x0, eps = split_prediction_at(model_out, x_t, gather(self.alphas_cumprod, t, x_t), prediction_type)
         if clip_x0 is not None:
             x0 = x0.clamp(-clip_x0, clip_x0)
             eps = self.predict_eps_from_x0(x_t, t, x0)
@@ -417,14 +438,20 @@ def ddpm_step(
     mean, _, log_var = schedule.posterior_mean_variance(x0, x_t, t)
     if variance_type == "fixed_large":
         large = torch.cat([schedule.posterior_variance[1:2], schedule.betas[1:]])
-        log_var = _gather((large if schedule.num_steps > 1 else schedule.betas).log(), t, x_t)
+        log_var = gather((large if schedule.num_steps > 1 else schedule.betas).log(), t, x_t)
     elif variance_type != "fixed_small":
         raise ValueError(f"unknown variance_type {variance_type!r}")
-    nonzero = _as_long(t) > 0
-    if not bool(nonzero.any()):
-        return StepOutput(mean, x0)
+    if isinstance(t, int):  # decided on the host (the samplers' case)
+        if t == 0:
+            return StepOutput(mean, x0)
+        keep: Tensor | float = 1.0
+    else:
+        nonzero = _as_long(t) > 0
+        if not bool(nonzero.any()):  # a read back to the host for timesteps on a GPU
+            return StepOutput(mean, x0)
+        keep = _bcast(nonzero, x_t)
     noise = normal(x_t.shape, x_t, generator) if noise is None else noise
-    return StepOutput(mean + _bcast(nonzero, x_t) * (0.5 * log_var).exp() * noise, x0)
+    return StepOutput(mean + keep * (0.5 * log_var).exp() * noise, x0)
 
 
 def ddpm_sample(
@@ -450,11 +477,11 @@ def ddpm_sample(
     """
     cond = dict(cond or {})
     x = _initial_noise(shape, x_T, generator, device, dtype)
+    schedule = schedule.to(x.device)
     for step in reversed(range(schedule.num_steps)):
-        t = _full_timesteps(step, x.shape[0], x.device)
-        out = model_fn(x, t, **cond)
+        out = model_fn(x, _full_timesteps(step, x.shape[0], x.device), **cond)
         x = ddpm_step(
-            schedule, out, x, t, generator=generator, prediction_type=prediction_type,
+            schedule, out, x, step, generator=generator, prediction_type=prediction_type,
             variance_type=variance_type, clip_x0=clip_x0,
         ).prev_sample
     return x
@@ -509,11 +536,15 @@ def final_alpha_cumprod(schedule: NoiseSchedule, set_alpha_to_one: bool = False)
     return 1.0 if set_alpha_to_one else float(schedule.alphas_cumprod[0])
 
 
-def _alpha_cumprod_or_final(schedule: NoiseSchedule, t: Timesteps, like: Tensor, final: float) -> Tensor:
-    """``alphas_cumprod[t]`` where t >= 0, ``final`` where t < 0 (the step after the last one)."""
-    idx = _as_long(t)
-    values = torch.where(idx >= 0, schedule.alphas_cumprod[idx.clamp(min=0)], torch.tensor(final, dtype=_F64))
-    return _bcast(values, like)
+def _alpha_cumprod_or_final(schedule: NoiseSchedule, t: Timesteps, like: Tensor, set_alpha_to_one: bool) -> Tensor:
+    """``alphas_cumprod[t]`` where t >= 0, :func:`final_alpha_cumprod` where t < 0 (the step after the last
+    one), both taken on the table's device."""
+    table = schedule.alphas_cumprod
+    final = table.new_ones(()) if set_alpha_to_one else table[0]
+    if isinstance(t, int):
+        return _bcast(table[t] if t >= 0 else final, like)
+    idx = _as_long(t).to(table.device)
+    return _bcast(torch.where(idx >= 0, table[idx.clamp(min=0)], final), like)
 
 
 def ddim_step(
@@ -538,8 +569,8 @@ def ddim_step(
     ``generator``; eta = 1 is DDPM-like ancestral sampling on the sub-grid.
     """
     x0, eps = schedule.split_prediction(model_out, x_t, t, prediction_type, clip_x0)
-    ab_t = _gather(schedule.alphas_cumprod, t, x_t)
-    ab_prev = _alpha_cumprod_or_final(schedule, t_prev, x_t, final_alpha_cumprod(schedule, set_alpha_to_one))
+    ab_t = gather(schedule.alphas_cumprod, t, x_t)
+    ab_prev = _alpha_cumprod_or_final(schedule, t_prev, x_t, set_alpha_to_one)
     sigma = eta * ((1.0 - ab_prev) / (1.0 - ab_t) * (1.0 - ab_t / ab_prev)).clamp(min=0).sqrt()
     prev = ab_prev.sqrt() * x0 + (1.0 - ab_prev - sigma**2).clamp(min=0).sqrt() * eps
     if eta > 0:
@@ -589,12 +620,12 @@ def ddim_sample(
     cond = dict(cond or {})
     grid = _grid(schedule, num_steps, timesteps, timestep_spacing, steps_offset)
     x = _initial_noise(shape, x_T, generator, device, dtype)
+    schedule = schedule.to(x.device)
     for i, step in enumerate(grid):
-        t = _full_timesteps(step, x.shape[0], x.device)
         t_prev = grid[i + 1] if i + 1 < len(grid) else -1
-        out = model_fn(x, t, **cond)
+        out = model_fn(x, _full_timesteps(step, x.shape[0], x.device), **cond)
         x = ddim_step(
-            schedule, out, x, t, t_prev, eta=eta, generator=generator, prediction_type=prediction_type,
+            schedule, out, x, step, t_prev, eta=eta, generator=generator, prediction_type=prediction_type,
             set_alpha_to_one=set_alpha_to_one, clip_x0=clip_x0,
         ).prev_sample
     return x
@@ -622,14 +653,14 @@ def ddim_invert(
     """
     cond = dict(cond or {})
     grid = _grid(schedule, num_steps, timesteps, timestep_spacing, steps_offset)[::-1]
-    final = final_alpha_cumprod(schedule, set_alpha_to_one)
     x = x0
+    schedule = schedule.to(x.device)
     levels = [-1, *grid]
     for a, b in zip(levels[:-1], levels[1:], strict=True):
-        ab_a = _alpha_cumprod_or_final(schedule, a, x, final)
+        ab_a = _alpha_cumprod_or_final(schedule, a, x, set_alpha_to_one)
         out = model_fn(x, _full_timesteps(max(a, 0), x.shape[0], x.device), **cond)
         x0_hat, eps_hat = split_prediction_at(out, x, ab_a, prediction_type)
-        ab_b = _gather(schedule.alphas_cumprod, b, x)
+        ab_b = gather(schedule.alphas_cumprod, b, x)
         x = ab_b.sqrt() * x0_hat + (1.0 - ab_b).sqrt() * eps_hat
     return x
 
@@ -779,7 +810,7 @@ def ddim_solver_step(
     """
     if x0 is None:
         x0 = schedule.predict_x0_from_eps(x_t, t, eps)
-    ab_prev = _gather(schedule.alphas_cumprod, t_prev, x_t)
+    ab_prev = gather(schedule.alphas_cumprod, t_prev, x_t)
     return ab_prev.sqrt() * x0 + (1.0 - ab_prev).sqrt() * eps
 
 
@@ -843,6 +874,7 @@ def lcm_multistep_sample(
         num_steps, schedule.num_steps, original_steps, rule
     ).tolist()
     x = _initial_noise(shape, x_T, generator, device, dtype)
+    schedule = schedule.to(x.device)
     for i, step in enumerate(grid):
         t = _full_timesteps(step, x.shape[0], x.device)
         out = model_fn(x, t, **cond)

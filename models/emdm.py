@@ -123,6 +123,7 @@ Choices where the paper (or its code) is ambiguous or where we depart from it, e
 
 from __future__ import annotations
 
+import copy
 import math
 from collections.abc import Iterator, Mapping, Sequence
 from contextlib import contextmanager
@@ -137,7 +138,7 @@ from torch.nn.attention import SDPBackend, sdpa_kernel
 
 from data.features import feature_groups, recover_from_ric
 from data.skeleton import SKELETONS
-from models.diffusion import cfg_combine, condition_dropout, sample_timesteps
+from models.diffusion import cfg_combine, condition_dropout, gather, sample_timesteps
 from models.patches import from_output_patches, output_width, to_patches
 from models.rng import normal
 from models.transformer import PositionalEncoding, TransformerLayer, eval_mode, lengths_to_mask, timestep_embedding
@@ -228,37 +229,43 @@ class EMDMSchedule:
         self.posterior_log_variance = self.posterior_variance.clamp(min=1e-20).log()
         self.posterior_mean_coef1 = b * a_prev.sqrt() / (1.0 - a)
         self.posterior_mean_coef2 = (1.0 - a_prev) * (1.0 - b).sqrt() / (1.0 - a)
+        self.noise_on = (torch.arange(num_steps) > 0).to(_F64)  # 1 where the posterior adds noise (t > 0)
 
-    @staticmethod
-    def _gather(table: Tensor, index: Tensor | int, like: Tensor) -> Tensor:
-        idx = torch.as_tensor(index).detach().to("cpu", torch.long)
-        if idx.numel() and (int(idx.min()) < 0 or int(idx.max()) >= table.shape[0]):
-            raise IndexError(f"index out of range [0, {table.shape[0] - 1}]: {idx.tolist()}")
-        return table[idx].to(like.device, like.dtype).reshape(-1, *([1] * (like.ndim - 1)))
+    def to(self, device: torch.device | str) -> EMDMSchedule:
+        """This schedule with every table on ``device`` (itself when they are there already); the sampler moves
+        it to G's device once (:mod:`models.diffusion`'s conventions)."""
+        device = torch.device(device)
+        if self.alphas_cumprod.device == device:
+            return self
+        moved = copy.copy(self)
+        for name, value in vars(self).items():
+            if isinstance(value, Tensor):
+                setattr(moved, name, value.to(device))
+        return moved
 
     def q_sample(self, x0: Tensor, level: Tensor | int, noise: Tensor) -> Tensor:
         """``x_k = sqrt(alpha_bar_k) x0 + sqrt(1 - alpha_bar_k) noise`` for levels k in 0..T (k = 0: x0)."""
-        a = self._gather(self.alphas_cumprod, level, x0)
+        a = gather(self.alphas_cumprod, level, x0)
         return a.sqrt() * x0 + (1.0 - a).sqrt() * noise
 
     def q_step(self, x_t: Tensor, t: Tensor | int, noise: Tensor) -> Tensor:
         """One forward step ``x_{t+1} = sqrt(1 - beta_{t+1}) x_t + sqrt(beta_{t+1}) noise``, t in 0..T-1."""
-        b = self._gather(self.betas, t, x_t)
+        b = gather(self.betas, t, x_t)
         return (1.0 - b).sqrt() * x_t + b.sqrt() * noise
 
     def posterior_mean_variance(self, x0: Tensor, x_next: Tensor, t: Tensor | int) -> tuple[Tensor, Tensor, Tensor]:
         """Mean, variance and log-variance of ``q(x_t | x_{t+1} = x_next, x0)`` (class docstring)."""
-        mean = self._gather(self.posterior_mean_coef1, t, x0) * x0 + self._gather(
+        mean = gather(self.posterior_mean_coef1, t, x0) * x0 + gather(
             self.posterior_mean_coef2, t, x_next
         ) * x_next
-        return mean, self._gather(self.posterior_variance, t, x_next), self._gather(
+        return mean, gather(self.posterior_variance, t, x_next), gather(
             self.posterior_log_variance, t, x_next
         )
 
     def posterior_sample(self, x0: Tensor, x_next: Tensor, t: Tensor | int, noise: Tensor) -> Tensor:
         """EMDM Alg. 2: ``mean + [t > 0] exp(logvar / 2) noise``; at t = 0 exactly x0."""
         mean, _, log_var = self.posterior_mean_variance(x0, x_next, t)
-        nonzero = self._gather((torch.arange(self.num_steps) > 0).to(_F64), t, x_next)
+        nonzero = gather(self.noise_on, t, x_next)
         return mean + nonzero * (0.5 * log_var).exp() * noise
 
 
@@ -959,6 +966,7 @@ def sample_emdm(
     ref = torch.empty(0, device=device, dtype=dtype)
     x = normal((b, n, cfg.feature_dim), ref, generator_rng) if x_T is None else x_T.to(device, dtype)
     x = torch.where(valid, x, 0.0)
+    schedule = schedule.to(device)
     with eval_mode(generator):
         lengths_g, conditioning = guidance_batch(generator, cond, lengths_t, guidance, words)
         for step in reversed(range(schedule.num_steps)):

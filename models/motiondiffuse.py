@@ -518,7 +518,7 @@ class MotionDiffuse(nn.Module):
         lengths_t = torch.as_tensor(lengths, device=x_t.device).long()
         if lengths_t.shape != (b,):
             raise ValueError(f"lengths must have shape ({b},), got {tuple(lengths_t.shape)}")
-        if b and int(lengths_t.min()) < 1:
+        if b and lengths_t.device.type == "cpu" and int(lengths_t.min()) < 1:  # on a GPU: checked by the sampler
             raise ValueError(f"lengths must lie in [1, {n}], got {lengths_t.tolist()}")
         valid = lengths_to_mask(lengths_t, n)
         steps = torch.as_tensor(t, device=x_t.device).long()
@@ -673,8 +673,11 @@ def sample_motiondiffuse(
     """
     cfg = model.config
     device, dtype = _model_device_dtype(model)
-    lengths_t = torch.as_tensor(lengths, device=device).long()
+    lengths_t = torch.as_tensor(lengths).long()  # checked here, once, not at every step on a GPU
     n = int(lengths_t.max()) if num_frames is None else int(num_frames)
+    if lengths_t.numel() and (int(lengths_t.min()) < 1 or int(lengths_t.max()) > n):
+        raise ValueError(f"lengths must lie in [1, {n}], got {lengths_t.tolist()}")
+    lengths_t = lengths_t.to(device)
     shape = (int(lengths_t.shape[0]), n, cfg.feature_dim)
     if x_T is None:
         x_T = torch.randn(shape, generator=generator, device=rng_device(generator, device), dtype=dtype)

@@ -64,11 +64,13 @@ def eval_mode(*modules: nn.Module) -> Iterator[None]:
 def lengths_to_mask(lengths: Tensor | Sequence[int], max_len: int | None = None) -> Tensor:
     """Validity mask (B, T) bool, True on frames ``t < lengths[b]``; ``T = max_len`` or ``max(lengths)``.
 
-    The key-padding masks of :class:`SkipTransformer` are the negation (True = padding).
+    The key-padding masks of :class:`SkipTransformer` are the negation (True = padding). Lengths outside
+    [0, T] raise a ValueError when they are on the CPU; lengths on a GPU are not read back to be checked
+    (a wait for the GPU's queue at every denoising step): check them before moving them.
     """
     lengths = torch.as_tensor(lengths).long()
     t = int(lengths.max()) if max_len is None else int(max_len)
-    if lengths.numel() and (int(lengths.min()) < 0 or int(lengths.max()) > t):
+    if lengths.device.type == "cpu" and lengths.numel() and (int(lengths.min()) < 0 or int(lengths.max()) > t):
         raise ValueError(f"lengths must lie in [0, {t}], got {lengths.tolist()}")
     return torch.arange(t, device=lengths.device)[None, :] < lengths[:, None]
 

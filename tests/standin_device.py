@@ -9,6 +9,12 @@ sequences with CPU lengths and copying a CPU tensor into a device one are allowe
 a CPU generator cannot draw on the device; ``.numpy()`` and ``np.asarray`` refuse device tensors, and
 ``.cpu()`` and ``.to("cpu")`` bring them back.
 
+``StandIn.syncs`` counts, by operation, what would make the host wait for a GPU's queue to drain: a device
+tensor read back (``item``, ``tolist``, ``bool``/``int``/``float``, ``.cpu()``, ``.to("cpu")``) and a CPU
+tensor copied onto the device (``.to(device)``, ``copy_``, ``torch.tensor(..., device=...)``, CPU indices of
+a device tensor: a copy from pageable memory waits too). A sampler whose count does not grow with its
+number of steps does not wait at every step.
+
 Their arithmetic is the CPU's, so a computation on the stand-in gives the CPU's numbers up to the kernel a
 tensor subclass may take (a non-contiguous input to ``F.linear``: differences near 1e-7); a test compares the
 two with a tolerance. What the stand-in cannot show: CUDA's own kernels (cuDNN, TF32, the attention backends),
@@ -17,6 +23,8 @@ its memory, and code that tests ``device.type == "cuda"``.
 
 from __future__ import annotations
 
+from collections import Counter
+from collections.abc import Callable
 from typing import Any
 
 import torch
@@ -32,6 +40,12 @@ CPU_INTEGERS = frozenset({"__getitem__", "__setitem__", "index_put_", "_pack_pad
 COPYING = frozenset({"copy_", "__setitem__"})
 #: Operations that refuse even a 0-dimensional CPU tensor beside device tensors.
 CONCATENATING = frozenset({"cat", "concat", "concatenate", "stack", "hstack", "vstack"})
+#: Indexing, which copies CPU index tensors to the device.
+INDEXING = frozenset({"__getitem__", "__setitem__", "index_put_"})
+#: Operations that read a device tensor back to the host.
+READING_BACK = frozenset({"item", "tolist", "__bool__", "__int__", "__float__", "__index__", "cpu"})
+#: Factory functions that copy host data onto the device they are given.
+FROM_HOST = frozenset({"tensor", "as_tensor"})
 
 
 class OnStandIn(torch.Tensor):
@@ -66,7 +80,12 @@ def _wrap(out: Any) -> Any:
 
 
 class StandIn(TorchFunctionMode):
-    """The torch function mode that gives ``STANDIN`` its GPU-like rules (module docstring)."""
+    """The torch function mode that gives ``STANDIN`` its GPU-like rules, and counts the host's waits
+    (module docstring)."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.syncs: Counter[str] = Counter()
 
     def __torch_function__(self, func, types, args=(), kwargs=None):  # noqa: ANN001 - torch's protocol
         kwargs = dict(kwargs or {})
@@ -74,6 +93,8 @@ class StandIn(TorchFunctionMode):
         with torch._C.DisableTorchFunctionSubclass():
             first = args[0] if args else None
             on_standin = type(first) is OnStandIn
+            if on_standin and name in READING_BACK:
+                self.syncs[name] += 1
             if name == "__get__" and getattr(getattr(func, "__self__", None), "__name__", "") == "device":
                 return STANDIN if on_standin else func(*args)
             if name == "_has_compatible_shallow_copy_type":  # Module.to: make new parameters, not set .data
@@ -84,12 +105,16 @@ class StandIn(TorchFunctionMode):
                 out = first if dtype is None else torch.Tensor.to(first, dtype=dtype)
                 if target is None:
                     target = STANDIN if on_standin else torch.device("cpu")
+                if on_standin != (target.type == STANDIN.type) and name != "cpu":  # .cpu() is counted above
+                    self.syncs["to device" if target.type == STANDIN.type else "to cpu"] += 1
                 return out.as_subclass(OnStandIn if target.type == STANDIN.type else torch.Tensor)
             if name in ("numpy", "__array__") and on_standin:
                 raise TypeError("can't convert a stand-in device tensor to numpy: use .cpu() first")
             device = kwargs.get("device")
             factory = device is not None and torch.device(device).type in (STANDIN.type, "cuda")
             if factory:
+                if name in FROM_HOST and type(first) is not OnStandIn:
+                    self.syncs[f"{name} to device"] += 1
                 generator = kwargs.get("generator")
                 if generator is not None and generator.device.type == "cpu":
                     raise RuntimeError(f"{name}: a CPU generator cannot draw on the stand-in device")
@@ -101,6 +126,8 @@ class StandIn(TorchFunctionMode):
                     raise RuntimeError(f"{name}: the lengths must be a CPU tensor")
                 if name in CPU_INTEGERS and not on_standin:
                     raise RuntimeError(f"{name}: a CPU tensor with indices on the stand-in device")
+                if name in COPYING | INDEXING and on_standin and any(type(x) is not OnStandIn for x in tensors[1:]):
+                    self.syncs[f"{name} from the host"] += 1  # the source or the indices copied to the device
                 cpu = [] if name in COPYING and on_standin else [
                     x for x in tensors if type(x) is not OnStandIn and (x.dim() > 0 or name in CONCATENATING)
                     and not (name in CPU_INTEGERS and not x.is_floating_point())]
@@ -111,3 +138,10 @@ class StandIn(TorchFunctionMode):
         if name == "_pack_padded_sequence" and mixed:  # the packed data on the device, its batch sizes on the CPU
             return _wrap(out[0]), out[1]
         return _wrap(out) if mixed or factory else out
+
+
+def syncs_of(run: Callable[[], object]) -> Counter[str]:
+    """What ``run()`` makes the host wait for, counted on a fresh stand-in (module docstring)."""
+    with StandIn() as mode:
+        run()
+    return mode.syncs

@@ -4,11 +4,12 @@ of a GPU's scope. No GPU is needed: torch's CUDA queries are stubbed where a tes
 from __future__ import annotations
 
 import os
+from collections import Counter
 
 import numpy as np
 import pytest
 import torch
-from standin_device import STANDIN, StandIn
+from standin_device import STANDIN, StandIn, syncs_of
 from torch.nn.utils.rnn import pack_padded_sequence
 
 from pipelines.devices import deterministic_gpu, device_name, sampling_device
@@ -70,3 +71,26 @@ def test_the_standin_gpu_refuses_what_cuda_refuses() -> None:
                                                                    torch.tensor([3, 2]), batch_first=True).data]
         assert all(x.device == STANDIN for x in allowed)
         assert type(on_device.cpu() + on_cpu) is torch.Tensor
+
+
+def test_the_standin_gpu_counts_what_makes_the_host_wait() -> None:
+    """Reading a device tensor back and copying host data onto the device each count once (a GPU's host waits for
+    its queue to drain); making, computing and indexing on the device, and CPU scalars, count nothing."""
+    def work() -> None:
+        on_device = torch.arange(3.0, device=STANDIN)
+        on_device.sum().item()
+        bool(on_device[0] > 0)
+        int(on_device[1])
+        on_device.tolist()
+        on_device.cpu()
+        on_device.to("cpu")
+        torch.ones(2).to("cuda")
+        on_device.clone().copy_(torch.zeros(3))
+        torch.tensor([1, 2], device=STANDIN)
+        on_device[torch.tensor([0, 2])]
+        torch.full((2,), 3.0, device=STANDIN) * on_device[1] + torch.tensor(2.0)
+        on_device[torch.arange(0, 3, 2, device=STANDIN)].exp()
+
+    assert syncs_of(work) == Counter({"item": 1, "__bool__": 1, "__int__": 1, "tolist": 1, "cpu": 1, "to cpu": 1,
+                                      "to device": 1, "copy_ from the host": 1, "tensor to device": 1,
+                                      "__getitem__ from the host": 1})

@@ -3,9 +3,11 @@
 from __future__ import annotations
 
 import math
+from dataclasses import fields
 
 import pytest
 import torch
+from standin_device import STANDIN, syncs_of
 
 from models import diffusion as D
 from models.diffusion import NoiseSchedule
@@ -505,3 +507,26 @@ def test_ddpm_fixed_large_variance_is_beta_t() -> None:
     z = torch.randn(1, 3, dtype=torch.float64, generator=torch.Generator().manual_seed(0))
     out = D.ddpm_step(s, x0, xt, torch.tensor([50]), prediction_type="sample", variance_type="fixed_large", noise=z)
     torch.testing.assert_close(out.prev_sample, s.posterior_mean_coef2[50] * xt + s.betas[50].sqrt() * z)
+
+
+def test_samplers_wait_for_the_gpu_a_fixed_number_of_times_whatever_their_steps() -> None:
+    """On a GPU a step that reads a timestep back to the host, or copies a coefficient onto the device, waits
+    for the device's queue to drain. The samplers move their schedule to the device once (its tables) and
+    then index it there, so twice the steps make the host wait no more often (the stand-in counts the waits;
+    the noise is drawn on the device, with no CPU generator to copy from)."""
+    def model(x: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
+        return 0.1 * x + 1e-3 * t[:, None, None]
+
+    schedules = {n: NoiseSchedule.from_name("linear", n) for n in (5, 10)}
+    x0 = torch.randn(2, 3, 4)
+    runs = {
+        "ddpm": lambda n: D.ddpm_sample(model, (2, 3, 4), schedules[5 * n], device=STANDIN),
+        "ddim": lambda n: D.ddim_sample(model, (2, 3, 4), schedules[10], 2 * n, eta=0.5, device=STANDIN),
+        "lcm": lambda n: D.lcm_multistep_sample(model, (2, 3, 4), schedules[10], 2 * n, original_steps=5,
+                                                device=STANDIN),
+        "ddim_invert": lambda n: D.ddim_invert(model, x0.to(STANDIN), schedules[10], 2 * n),
+    }
+    for name, run in runs.items():
+        once, twice = syncs_of(lambda run=run: run(1)), syncs_of(lambda run=run: run(2))
+        assert once == twice, (name, once, twice)
+        assert sum(once.values()) <= len(fields(NoiseSchedule)) + 1, (name, once)  # the tables' copies (+ x0's)

@@ -8,6 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from standin_device import STANDIN, syncs_of
 from torch import nn
 
 from models.diffusion import condition_dropout
@@ -631,6 +632,18 @@ def test_sampler_is_deterministic_and_zero_on_padding() -> None:
     assert torch.equal(a[1, 4:], torch.zeros(2, D)) and a[1, :4].abs().sum() > 0
     assert gen.training  # the mode is restored
     assert sample_emdm(gen, schedule, cond, lengths, 2.5, _gen(17), num_frames=9).shape == (2, 9, D)
+
+
+def test_sampler_waits_for_the_gpu_a_fixed_number_of_times_whatever_its_steps() -> None:
+    """On a GPU (the stand-in counts the host's waits: tests/standin_device.py) the schedule moves to G's device
+    once and no step reads a timestep back or copies a coefficient over: a chain of 4 steps makes the host
+    wait as often as one of 2 (z and the posterior noise drawn on the device, with no CPU generator)."""
+    def sample(steps: int) -> None:
+        gen, _ = _nets(num_steps=steps, word_tokens=True, token_dim=6, input_skip=True, skip_kernel=3)
+        words = (torch.randn(2, 3, 6), torch.tensor([[True, True, False], [True, True, True]]))
+        sample_emdm(gen.to(STANDIN), gen.config.make_schedule(), torch.randn(2, E), [6, 4], 2.5, words=words)
+
+    assert syncs_of(lambda: sample(2)) == syncs_of(lambda: sample(4))
 
 
 def test_sampler_with_conditioning_computed_once_equals_algorithm_1_step_by_step() -> None:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import pytest
 import torch
+from standin_device import STANDIN, syncs_of
 from tolerance import float32_atol
 from torch import Tensor
 
@@ -312,6 +313,25 @@ def test_sampling_with_oracle_recovers_point_mass(method: str, steps: int | None
     torch.testing.assert_close(out[0], target[0], rtol=0, atol=1e-4)
     torch.testing.assert_close(out[1, :4], target[1, :4], rtol=0, atol=1e-4)
     assert (out[1, 4:] == 0).all()
+
+
+def test_sampling_waits_for_the_gpu_a_fixed_number_of_times_whatever_its_steps() -> None:
+    """On a GPU (the stand-in counts the host's waits: tests/standin_device.py) the sampler checks the lengths
+    once, before the loop, and no step reads anything back: DDIM with twice the steps, and DDPM over twice
+    the timesteps, make the host wait as often. Lengths outside [1, N] are still refused."""
+    ws, wm = _text()
+
+    def sample(timesteps: int, method: str, steps: int | None) -> None:
+        model = _model(input_skip=True, skip_kernel=3, num_train_timesteps=timesteps).to(STANDIN)
+        sample_motiondiffuse(model, model.config.make_schedule(), [6, 4], ws, wm, method=method,  # type: ignore[arg-type]
+                             steps=steps, guidance=2.5)
+
+    assert syncs_of(lambda: sample(50, "ddim", 2)) == syncs_of(lambda: sample(50, "ddim", 4))
+    assert syncs_of(lambda: sample(100, "ddpm", None)) == syncs_of(lambda: sample(200, "ddpm", None))
+    schedule = MotionDiffuseConfig(**TINY).make_schedule()
+    for lengths in ([6, 0], [6, 9]):
+        with pytest.raises(ValueError, match=r"lengths must lie in \[1, 6\]"):
+            sample_motiondiffuse(_model(), schedule, lengths, ws, wm, method="ddim", steps=2, num_frames=6)
 
 
 def test_sampling_arguments_are_validated() -> None:
