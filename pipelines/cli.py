@@ -109,6 +109,7 @@ SHARED_KEYS: dict[str, Callable[[Mapping[str, Any], str, str], Any]] = {
     "sample.control_refine_steps": partial(check_number, low=0, integer=True),
     "sample.control_refine_lr": partial(check_number, low=0.0, low_open=True),
     "sample.control_refine_project": partial(check_type, kind=bool),
+    "sample.control_refine_batch": _null_or_count,
 }
 SHARED_SECTIONS = frozenset(key.split(".")[0] for key in SHARED_KEYS)
 HELP_FLAGS = ("-h", "--help")

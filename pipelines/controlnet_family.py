@@ -5,8 +5,9 @@ Rows (all one-step MotionLCM, the configured guidance, pelvis hints from the tes
 - ``MotionLCM-Control``: every frame controlled (100 %);
 - ``MotionLCM-Control-5f``: 5 random frames;
 - ``MotionLCM-Control+refine``: 100 %, with test-time noise optimisation
-  (:func:`models.controlnet.refine_noise`, ``sample.control_refine_steps`` and ``_lr``), then the root
-  projection onto the hint (:mod:`data.root_projection`) when ``sample.control_refine_project``;
+  (:func:`models.controlnet.refine_noise`, ``sample.control_refine_steps`` and ``_lr``, on
+  ``sample.control_refine_batch`` motions at a time), then the root projection onto the hint
+  (:mod:`data.root_projection`) when ``sample.control_refine_project``;
 - ``MotionLCM-1-uncontrolled``: MotionLCM-1 without a ControlNet, scored against the same 100 % hints
   (the control error of a model that ignores them).
 """
@@ -68,18 +69,14 @@ class ControlNetGenerator:
         lengths_t = torch.as_tensor(lengths, device=device)
         joints = torch.from_numpy(hint.joints[:, :frames].astype(np.float32)).to(device)
         mask = torch.from_numpy(hint.mask[:, :frames]).to(device) & lengths_to_mask(lengths_t, frames)[..., None]
-        model = ControlledStudent(self.student, self.controlnet, joints, mask)
         text_emb, words = text_inputs(self.student, text)
         cfg = self.student.config
         x_T = torch.randn((len(text), cfg.latent_tokens, cfg.latent_dim),
                           generator=torch.Generator().manual_seed(seed)).to(device)
-
-        def denoise(x: torch.Tensor) -> torch.Tensor:
-            return motionlcm_latents(model, self.schedule, text_emb, 1, self.w, x_T=x, **words)
-
-        z0 = denoise(x_T) if self.refine is None else refine_noise(
-            denoise, self.vae, x_T, joints, mask, lengths_t, mean=self.mean.to(device), std=self.std.to(device),
-            latent_scale=cfg.latent_scale, steps=int(self.refine["steps"]), lr=self.refine["lr"])
+        chunk = max(1, len(text) if self.refine is None or self.refine["batch"] is None else self.refine["batch"])
+        z0 = torch.cat([self.latents(x_T[rows], text_emb[rows], {k: v[rows] for k, v in words.items()}, joints[rows],
+                                     mask[rows], lengths_t[rows])
+                        for rows in (slice(first, first + chunk) for first in range(0, len(text), chunk))])
         with torch.no_grad():
             out = self.vae.eval().decode_by_length(z0 * cfg.latent_scale, lengths_t).cpu().numpy()
         if self.refine is None or not self.refine["project"]:
@@ -87,6 +84,23 @@ class ControlNetGenerator:
         mean, std = self.mean.numpy(), self.std.numpy()
         projected = project_root(out * std + mean, hint.joints, hint.mask, np.asarray(lengths), joints_num)
         return ((projected - mean) / std).astype(np.float32)
+
+
+    def latents(self, x_T: torch.Tensor, text_emb: torch.Tensor, words: dict[str, torch.Tensor], joints: torch.Tensor,
+                mask: torch.Tensor, lengths: torch.Tensor) -> torch.Tensor:
+        """One-step latents (B, L, C) of these motions from their noise ``x_T``, refined when the row refines (a
+        refined row calls this on ``refine["batch"]`` motions at a time: refinement backpropagates through the
+        decoder, and its memory grows with the motions it holds)."""
+        model = ControlledStudent(self.student, self.controlnet, joints, mask)
+
+        def denoise(x: torch.Tensor) -> torch.Tensor:
+            return motionlcm_latents(model, self.schedule, text_emb, 1, self.w, x_T=x, **words)
+
+        if self.refine is None:
+            return denoise(x_T)
+        return refine_noise(denoise, self.vae, x_T, joints, mask, lengths, mean=self.mean.to(x_T.device),
+                            std=self.std.to(x_T.device), latent_scale=self.student.config.latent_scale,
+                            steps=int(self.refine["steps"]), lr=self.refine["lr"])
 
 
 class Uncontrolled:
@@ -103,7 +117,7 @@ class Uncontrolled:
 def _refine_settings(ctx: EvalContext) -> dict[str, Any]:
     sample = ctx.params["sample"]
     return {"steps": sample["control_refine_steps"], "lr": sample["control_refine_lr"],
-            "project": sample["control_refine_project"]}
+            "project": sample["control_refine_project"], "batch": sample["control_refine_batch"]}
 
 
 def _controlnet(ctx: EvalContext, name: str, density: str, refine: bool = False,

@@ -129,7 +129,7 @@ FAMILIES: dict[str, ModelFamily] = {family.name: family for family in (
     ModelFamily("motionlcm-control", "pipelines.controlnet_family", "controlnet_rows", "controlnet_row_names",
                 train_stages=("train_vae", "train_mld", "distill_lcm", "train_controlnet"),
                 params=("sample.motionlcm_guidance", "sample.control_refine_steps", "sample.control_refine_lr",
-                        "sample.control_refine_project"),
+                        "sample.control_refine_project", "sample.control_refine_batch"),
                 generator="controlnet_generator", controlled=True,
                 description="MotionLCM's ControlNet: one step, following a pelvis trajectory"),
     ModelFamily("emdm", "pipelines.emdm_family", "emdm_rows", "emdm_row_names", train_stages=("train_emdm",),

@@ -419,10 +419,46 @@ def test_controlnet_rows_count_every_forward_pass_as_nfe(refine_steps):
     calls = []
     for net in (base, controlnet):  # the student, and the ControlNet (its copy runs through `run`)
         net.register_forward_hook(lambda *_: calls.append(1))
-    refine = None if refine_steps is None else {"steps": refine_steps, "lr": 0.1, "project": False}
+    refine = None if refine_steps is None else {"steps": refine_steps, "lr": 0.1, "project": False, "batch": None}
     gen = ControlNetGenerator("c", base, controlnet, tiny_vae().eval(), SCHEDULE, 2.5, ControlSpec("100%"),
                               np.zeros(D, np.float32), np.ones(D, np.float32), refine)
     x = batch(1, 8)
     text = TextBatch(texts=["a"], pooled=x["text_emb"].numpy(), tokens=[x["text_tokens"][0].numpy()])
     gen.sample(text, np.array([8]), 0, Hint(joints=x["hint"].numpy(), mask=x["mask"].numpy()))
     assert len(calls) == gen.nfe == 2 * (1 + (refine_steps or 0))
+
+
+def test_refinement_in_batches_holds_that_many_motions_and_gives_the_same_motions(monkeypatch):
+    """``sample.control_refine_batch``: the refinement backpropagates through the decoder for that many motions at
+    a time (what bounds its memory), from the same noise. Each batch's control loss is its own mean, and Adam's
+    steps do not depend on the loss's scale, so the motions come out as from one batch, up to float noise (which
+    Adam's normalised first step amplifies where a gradient is near zero: about 1e-4 here)."""
+    import models.controlnet
+    from models.generator import TextBatch
+    from pipelines.controlnet_family import ControlNetGenerator, ControlSpec
+
+    base = student()
+    randomise(base)
+    controlnet = MotionControlNet(base, control_config()).eval()
+    randomise(controlnet, seed=3)
+    vae = tiny_vae().eval()
+    decoded = []
+
+    def decode_joints(vae: MotionVAE, z: torch.Tensor, *args, **kwargs) -> torch.Tensor:
+        decoded.append(z.shape[0])
+        return models.controlnet.__dict__["_decode_joints"](vae, z, *args, **kwargs)
+
+    monkeypatch.setitem(models.controlnet.__dict__, "_decode_joints", models.controlnet.decode_joints)
+    monkeypatch.setattr(models.controlnet, "decode_joints", decode_joints)
+    x, lengths = batch(5, 8), np.array([8, 6, 8, 5, 7])
+    text = TextBatch(texts=list("abcde"), pooled=x["text_emb"].numpy(), tokens=list(x["text_tokens"].numpy()))
+    hint = Hint(joints=x["hint"].numpy(), mask=x["mask"].numpy())
+    motions = {}
+    for size in (None, 2):
+        gen = ControlNetGenerator("c", base, controlnet, vae, SCHEDULE, 2.5, ControlSpec("100%"),
+                                  np.zeros(D, np.float32), np.ones(D, np.float32),
+                                  {"steps": 3, "lr": 0.1, "project": False, "batch": size})
+        decoded.clear()
+        motions[size] = gen.sample(text, lengths, 7, hint)
+        assert decoded == ([5] * 3 if size is None else [2] * 3 + [2] * 3 + [1] * 3)
+    np.testing.assert_allclose(motions[2], motions[None], rtol=0, atol=1e-3)
