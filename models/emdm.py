@@ -141,7 +141,14 @@ from data.skeleton import SKELETONS
 from models.diffusion import cfg_combine, condition_dropout, gather, sample_timesteps
 from models.patches import from_output_patches, output_width, to_patches
 from models.rng import normal
-from models.transformer import PositionalEncoding, TransformerLayer, eval_mode, lengths_to_mask, timestep_embedding
+from models.transformer import (
+    PositionalEncoding,
+    TransformerLayer,
+    checked_lengths,
+    eval_mode,
+    lengths_to_mask,
+    timestep_embedding,
+)
 
 Condition = Literal["text", "action"]
 EMDMActivation = Literal["selu", "gelu", "relu", "silu"]
@@ -958,9 +965,9 @@ def sample_emdm(
     device = next(generator.parameters()).device
     cond = cond.to(device)
     words = None if words is None else (words[0].to(device), words[1].to(device))
-    lengths_t = torch.as_tensor(lengths, device=device)
+    lengths_t, n = checked_lengths(lengths, num_frames)
+    lengths_t = lengths_t.to(device)
     b = lengths_t.shape[0]
-    n = int(lengths_t.max()) if num_frames is None else int(num_frames)
     valid = _valid_mask(lengths_t, n, device)[..., None]
     dtype = next(generator.parameters()).dtype
     ref = torch.empty(0, device=device, dtype=dtype)

@@ -163,7 +163,7 @@ from models.diffusion import (
 )
 from models.patches import from_output_patches, output_width, to_patches
 from models.rng import normal, rng_device
-from models.transformer import TransformerLayer, eval_mode, lengths_to_mask, timestep_embedding
+from models.transformer import TransformerLayer, checked_lengths, eval_mode, lengths_to_mask, timestep_embedding
 
 AttentionKind = Literal["linear", "softmax"]
 SamplingMethod = Literal["ddpm", "ddim"]
@@ -673,10 +673,7 @@ def sample_motiondiffuse(
     """
     cfg = model.config
     device, dtype = _model_device_dtype(model)
-    lengths_t = torch.as_tensor(lengths).long()  # checked here, once, not at every step on a GPU
-    n = int(lengths_t.max()) if num_frames is None else int(num_frames)
-    if lengths_t.numel() and (int(lengths_t.min()) < 1 or int(lengths_t.max()) > n):
-        raise ValueError(f"lengths must lie in [1, {n}], got {lengths_t.tolist()}")
+    lengths_t, n = checked_lengths(lengths, num_frames)
     lengths_t = lengths_t.to(device)
     shape = (int(lengths_t.shape[0]), n, cfg.feature_dim)
     if x_T is None:
@@ -886,7 +883,7 @@ def body_part_model_fn(
     masks = [m.to(device) for m in _resolve_part_masks([p.part for p in prompts], model.config.feature_dim)]
     with torch.no_grad():
         texts = [guided_text(model, p.word_states, p.word_mask, guidance) for p in prompts]
-    lengths_t = torch.as_tensor(lengths, device=device).long()
+    lengths_t = checked_lengths(lengths)[0].to(device)
     pairs = [(i, j, None) for i in range(len(prompts)) for j in range(i + 1, len(prompts))]
     use_grad = lambda1 != 0.0 and bool(pairs)
 

@@ -75,6 +75,17 @@ def lengths_to_mask(lengths: Tensor | Sequence[int], max_len: int | None = None)
     return torch.arange(t, device=lengths.device)[None, :] < lengths[:, None]
 
 
+def checked_lengths(lengths: Tensor | Sequence[int], num_frames: int | None = None) -> tuple[Tensor, int]:
+    """``lengths`` (B,) as int64 where they are, and the frame count T (``num_frames`` or their maximum), once each
+    lies in [1, T] (else a ValueError). A sampler checks its lengths with it once, before its steps: on a GPU
+    :func:`lengths_to_mask` does not read them back."""
+    lengths = torch.as_tensor(lengths).long()
+    t = int(lengths.max()) if num_frames is None else int(num_frames)
+    if lengths.numel() and (int(lengths.min()) < 1 or int(lengths.max()) > t):
+        raise ValueError(f"lengths must lie in [1, {t}], got {lengths.tolist()}")
+    return lengths, t
+
+
 def sinusoidal_positions(num_positions: int, dim: int, *, device: torch.device | None = None) -> Tensor:
     """Transformer positional encoding (Vaswani et al. 2017, Sec. 3.5), (S, dim) float32.
 

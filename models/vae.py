@@ -65,7 +65,14 @@ from torch.nn import functional as F
 
 from data.features import feature_groups, recover_from_ric, root_angle
 from models.rng import normal
-from models.transformer import Activation, PositionalEncoding, PositionalEncodingKind, SkipTransformer, lengths_to_mask
+from models.transformer import (
+    Activation,
+    PositionalEncoding,
+    PositionalEncodingKind,
+    SkipTransformer,
+    checked_lengths,
+    lengths_to_mask,
+)
 
 DecoderArch = Literal["cross_attention", "self_attention"]
 JointSpace = Literal["global", "root"]
@@ -226,8 +233,8 @@ class MotionVAE(nn.Module):
         the quadratic self-attention runs on ~mean instead of max length (inference: evaluation and
         sampling of large batches).
         """
-        lengths = torch.as_tensor(lengths, device=z.device)
-        t = int(lengths.max()) if num_frames is None else int(num_frames)
+        lengths, t = checked_lengths(lengths, num_frames)
+        lengths = lengths.to(z.device)
         out = z.new_zeros(z.shape[0], t, self.config.feature_dim)
         for idx, longest in length_sorted_chunks(lengths, chunk_size):
             out[idx, :longest] = self.decode(z[idx], lengths[idx], longest)

@@ -26,7 +26,7 @@ from models.diffusion import NoiseSchedule
 from models.generator import ControlSpec, Hint, TextBatch, device_of
 from models.mld import MLDDenoiser
 from models.motionlcm import motionlcm_latents
-from models.transformer import lengths_to_mask
+from models.transformer import checked_lengths, lengths_to_mask
 from models.vae import MotionVAE
 from pipelines.checkpoint import load_final_model
 from pipelines.mld_family import MotionLCMGenerator, load_mld, load_motionlcm, load_vae, text_inputs
@@ -66,7 +66,7 @@ class ControlNetGenerator:
             raise ValueError(f"hint {hint.joints.shape} does not cover {len(text)} motions of up to {frames} frames "
                              f"and {joints_num} joints")
         device = device_of(self.student)
-        lengths_t = torch.as_tensor(lengths, device=device)
+        lengths_t = checked_lengths(lengths, frames)[0].to(device)
         joints = torch.from_numpy(hint.joints[:, :frames].astype(np.float32)).to(device)
         mask = torch.from_numpy(hint.mask[:, :frames]).to(device) & lengths_to_mask(lengths_t, frames)[..., None]
         text_emb, words = text_inputs(self.student, text)
@@ -124,7 +124,7 @@ def _controlnet(ctx: EvalContext, name: str, density: str, refine: bool = False,
                 base: ControlNetGenerator | None = None) -> ControlNetGenerator:
     if base is None:
         student = load_motionlcm(ctx.trained("distill_lcm"), device=ctx.device)
-        _, schedule, _ = load_mld(ctx.trained("train_mld"))
+        _, schedule, _ = load_mld(ctx.trained("train_mld"), device=ctx.device)
         controlnet = load_controlnet(ctx.trained("train_controlnet"), student)
         vae = load_vae(ctx.trained("train_vae"), ctx.device)
     else:

@@ -42,15 +42,15 @@ ACTION_STAGE = "train_emdm_action"
 def load_emdm(out_dir: Path, use_ema: bool = True,
               device: torch.device = CPU) -> tuple[EMDMGenerator, EMDMSchedule, dict[str, Any]]:
     """The trained generator of a ``train_emdm`` output folder in eval mode on ``device`` (its EMA weights when
-    present and ``use_ema``), its few-step schedule and its loop config. :func:`models.emdm.sample_emdm` moves
-    its inputs to the generator's device."""
+    present and ``use_ema``), its few-step schedule (on ``device`` too) and its loop config.
+    :func:`models.emdm.sample_emdm` moves its inputs to the generator's device."""
     payload = load_final_model(out_dir)
     config = payload["config"]
     model = EMDMConfig(**config["model"])
     generator = EMDMGenerator(model)
     weights = payload["ema"].get("generator") if use_ema else None
     generator.load_state_dict(weights or payload["models"]["generator"])
-    return generator.eval().to(device), model.make_schedule(), config
+    return generator.eval().to(device), model.make_schedule().to(device), config
 
 
 class EMDMGeneratorRow:

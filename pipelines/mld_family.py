@@ -58,13 +58,14 @@ def load_motionlcm(out_dir: Path, use_ema: bool = False, device: torch.device = 
 
 def load_mld(out_dir: Path, use_ema: bool = True,
              device: torch.device = CPU) -> tuple[MLDDenoiser, NoiseSchedule, dict[str, Any]]:
-    """The trained denoiser (EMA weights when present) on ``device``, its noise schedule and its loop config."""
+    """The trained denoiser (EMA weights when present) and its noise schedule on ``device`` (a sampler then
+    finds its schedule where it runs: no copy per call), and its loop config."""
     payload = load_final_model(out_dir)
     config = payload["config"]
     denoiser = MLDDenoiser(MLDConfig(**config["model"]))
     weights = payload["ema"].get("denoiser") if use_ema else None
     denoiser.load_state_dict(weights or payload["models"]["denoiser"])
-    return denoiser.eval().to(device), noise_schedule(config), config
+    return denoiser.eval().to(device), noise_schedule(config).to(device), config
 
 
 def text_inputs(denoiser: MLDDenoiser, text: TextBatch) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
@@ -186,7 +187,7 @@ def mld_generator(ctx: EvalContext, options: GenerateOptions) -> Generator:
 
 
 def _motionlcm(ctx: EvalContext, steps: int, guidance: float) -> MotionLCMGenerator:
-    _, schedule, _ = load_mld(ctx.trained("train_mld"))
+    _, schedule, _ = load_mld(ctx.trained("train_mld"), device=ctx.device)
     student = load_motionlcm(ctx.trained("distill_lcm"), device=ctx.device)
     return MotionLCMGenerator(f"MotionLCM-{steps}", student, load_vae(ctx.trained("train_vae"), ctx.device), schedule,
                               steps, guidance)

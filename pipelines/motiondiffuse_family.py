@@ -58,13 +58,14 @@ DDIM_ROW_STEPS = 10
 def load_motiondiffuse(out_dir: Path, use_ema: bool = True,
                        device: torch.device = CPU) -> tuple[MotionDiffuse, NoiseSchedule, dict[str, Any]]:
     """The trained noise predictor of a ``train_motiondiffuse`` output folder in eval mode on ``device`` (its EMA
-    weights when present and ``use_ema``; the paper trains none), its noise schedule and its loop config."""
+    weights when present and ``use_ema``; the paper trains none), its noise schedule (on ``device`` too) and its
+    loop config."""
     payload = load_final_model(out_dir)
     config = payload["config"]
     model = MotionDiffuse(MotionDiffuseConfig(**config["model"]))
     weights = payload["ema"].get(MODEL) if use_ema else None
     model.load_state_dict(weights or payload["models"][MODEL])
-    return model.eval().to(device), model.config.make_schedule(), config
+    return model.eval().to(device), model.config.make_schedule().to(device), config
 
 
 class MotionDiffuseRow:

@@ -126,8 +126,9 @@ class StandIn(TorchFunctionMode):
                     raise RuntimeError(f"{name}: the lengths must be a CPU tensor")
                 if name in CPU_INTEGERS and not on_standin:
                     raise RuntimeError(f"{name}: a CPU tensor with indices on the stand-in device")
-                if name in COPYING | INDEXING and on_standin and any(type(x) is not OnStandIn for x in tensors[1:]):
-                    self.syncs[f"{name} from the host"] += 1  # the source or the indices copied to the device
+                if name in COPYING | INDEXING and on_standin and any(
+                        type(x) is not OnStandIn and (x.dim() > 0 or name in COPYING) for x in tensors[1:]):
+                    self.syncs[f"{name} from the host"] += 1  # the source or the indices (a 0-d one is read) copied
                 cpu = [] if name in COPYING and on_standin else [
                     x for x in tensors if type(x) is not OnStandIn and (x.dim() > 0 or name in CONCATENATING)
                     and not (name in CPU_INTEGERS and not x.is_floating_point())]

@@ -462,3 +462,27 @@ def test_refinement_in_batches_holds_that_many_motions_and_gives_the_same_motion
         motions[size] = gen.sample(text, lengths, 7, hint)
         assert decoded == ([5] * 3 if size is None else [2] * 3 + [2] * 3 + [1] * 3)
     np.testing.assert_allclose(motions[2], motions[None], rtol=0, atol=1e-3)
+
+
+def test_refinement_waits_for_the_gpu_a_fixed_number_of_times_whatever_its_steps():
+    """On a GPU (the stand-in counts the host's waits: tests/standin_device.py) a refinement step reads nothing
+    back and copies nothing over: the schedule sits on the device, the lengths were checked once. Three
+    refinement steps wait as often as one."""
+    from standin_device import STANDIN, syncs_of
+
+    from models.generator import TextBatch
+    from pipelines.controlnet_family import ControlNetGenerator, ControlSpec
+
+    x = batch(2, 8)
+    text = TextBatch(texts=["a", "b"], pooled=x["text_emb"].numpy(), tokens=list(x["text_tokens"].numpy()))
+    hint = Hint(joints=x["hint"].numpy(), mask=x["mask"].numpy())
+
+    def refine(steps: int) -> None:
+        base = student().to(STANDIN)
+        controlnet, vae = MotionControlNet(base, control_config()).eval().to(STANDIN), tiny_vae().eval().to(STANDIN)
+        gen = ControlNetGenerator("c", base, controlnet, vae, SCHEDULE.to(STANDIN), 2.5, ControlSpec("100%"),
+                                  np.zeros(D, np.float32), np.ones(D, np.float32),
+                                  {"steps": steps, "lr": 0.1, "project": False, "batch": None})
+        gen.sample(text, np.array([8, 6]), 0, hint)
+
+    assert syncs_of(lambda: refine(1)) == syncs_of(lambda: refine(3)) != {}

@@ -88,6 +88,7 @@ def test_the_standin_gpu_counts_what_makes_the_host_wait() -> None:
         on_device.clone().copy_(torch.zeros(3))
         torch.tensor([1, 2], device=STANDIN)
         on_device[torch.tensor([0, 2])]
+        on_device[torch.tensor(1)]  # a 0-d CPU index is read on the host, not copied
         torch.full((2,), 3.0, device=STANDIN) * on_device[1] + torch.tensor(2.0)
         on_device[torch.arange(0, 3, 2, device=STANDIN)].exp()
 

@@ -529,4 +529,4 @@ def test_samplers_wait_for_the_gpu_a_fixed_number_of_times_whatever_their_steps(
     for name, run in runs.items():
         once, twice = syncs_of(lambda run=run: run(1)), syncs_of(lambda run=run: run(2))
         assert once == twice, (name, once, twice)
-        assert sum(once.values()) <= len(fields(NoiseSchedule)) + 1, (name, once)  # the tables' copies (+ x0's)
+        assert 0 < sum(once.values()) <= len(fields(NoiseSchedule)), (name, once)  # the 12 tables' copies (+ x0's)
