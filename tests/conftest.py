@@ -27,6 +27,7 @@ TEST_ENV = {
     "DVC_NO_ANALYTICS": "1",
     "RAY_USAGE_STATS_ENABLED": "0",
     "RAY_TRAIN_HEALTH_CHECK_INTERVAL_S": "0.2",
+    "RAY_TRAIN_ENABLE_PREEMPTION_WATCHER": "0",  # one process less per Train run (no cloud node is preempted here)
     # Token auth (default for local clusters in 2.60) breaks joining nodes and
     # ray.init(address=...) from subprocesses unless every process agrees on a mode.
     "RAY_AUTH_MODE": "disabled",

@@ -120,14 +120,14 @@ def toy_target(params: dict) -> SweepTarget:
 
 
 def toy_params(tmp: Path) -> dict[str, Any]:
-    """Two trials (lr 0.001 and 0.1, 20 steps, one at a time) of 1 worker x 1 CPU."""
+    """Two trials (lr 0.001 and 0.1, 20 steps, both at once) of 1 worker x 1 CPU."""
     loop = {"seed": 0, "batch_size": 8, "max_steps": 20, "grad_clip": 0.0, "lr_schedule": "constant",
             "warmup_steps": 0, "min_lr_ratio": 0.0, "log_every": 1000, "num_data_workers": 0, "length_buckets": 0}
     return {
         "toy": {"lr": 0.01, "marker": str(tmp / "prerequisite-ran"), "loop": loop},
         "paths": {"artifacts": str(tmp / "artifacts"), "ray_storage": str(tmp / "ray")},
         "ray": {"num_workers": 1, "cpus_per_worker": 1, "max_failures": 0, "checkpoint_every": 1000},
-        "sweep": {"settings": {"num_samples": 1, "scheduler": "fifo", "max_concurrent_trials": 1},
+        "sweep": {"settings": {"num_samples": 1, "scheduler": "fifo", "max_concurrent_trials": 2},
                   "toy": {"lr": "grid([0.001, 0.1])"}},
     }
 
@@ -527,7 +527,6 @@ def test_interrupted_smoke_sweep_resumes_and_writes_results(ray_cluster: Any, tm
     from stages import sweep
 
     params = smoke_params(tmp_path)
-    monkeypatch.setenv("RAY_TRAIN_ENABLE_PREEMPTION_WATCHER", "0")  # one process less per trial (Tune propagates it)
     pretrain_movement_in_process(params)
     monkeypatch.setattr(sweep, "load_params", lambda argv: params)
     # Ranked by the training loss reported every 2 steps, so that ASHA has rungs to stop a trial at
