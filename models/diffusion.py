@@ -525,22 +525,22 @@ def ddim_timesteps(
     return ts
 
 
-def final_alpha_cumprod(schedule: NoiseSchedule, set_alpha_to_one: bool = False) -> float:
-    """Signal level after the last DDIM step (diffusers' ``final_alpha_cumprod``).
+def final_alpha_cumprod(schedule: NoiseSchedule, set_alpha_to_one: bool = False) -> Tensor:
+    """Signal level after the last DDIM step (diffusers' ``final_alpha_cumprod``), float64 () on the schedule's
+    device (no read back to the host).
 
     ``set_alpha_to_one=True``: 1.0, the last step lands on the clean x0 prediction.
     ``set_alpha_to_one=False`` (MLD/MotionLCM, Stable Diffusion): ``alphas_cumprod[0]``, the last step
     lands on the noise level of timestep 0, so the output keeps ``sqrt(1 - ab_0)`` (0.029 for
     scaled_linear) of the current eps estimate.
     """
-    return 1.0 if set_alpha_to_one else float(schedule.alphas_cumprod[0])
+    return schedule.alphas_cumprod.new_ones(()) if set_alpha_to_one else schedule.alphas_cumprod[0]
 
 
 def _alpha_cumprod_or_final(schedule: NoiseSchedule, t: Timesteps, like: Tensor, set_alpha_to_one: bool) -> Tensor:
     """``alphas_cumprod[t]`` where t >= 0, :func:`final_alpha_cumprod` where t < 0 (the step after the last
     one), both taken on the table's device."""
-    table = schedule.alphas_cumprod
-    final = table.new_ones(()) if set_alpha_to_one else table[0]
+    table, final = schedule.alphas_cumprod, final_alpha_cumprod(schedule, set_alpha_to_one)
     if isinstance(t, int):
         return _bcast(table[t] if t >= 0 else final, like)
     idx = _as_long(t).to(table.device)

@@ -518,8 +518,8 @@ class MotionDiffuse(nn.Module):
         lengths_t = torch.as_tensor(lengths, device=x_t.device).long()
         if lengths_t.shape != (b,):
             raise ValueError(f"lengths must have shape ({b},), got {tuple(lengths_t.shape)}")
-        if b and lengths_t.device.type == "cpu" and int(lengths_t.min()) < 1:  # on a GPU: checked by the sampler
-            raise ValueError(f"lengths must lie in [1, {n}], got {lengths_t.tolist()}")
+        if lengths_t.device.type == "cpu":  # on a GPU: checked by the sampler, before its steps
+            checked_lengths(lengths_t, n)
         valid = lengths_to_mask(lengths_t, n)
         steps = torch.as_tensor(t, device=x_t.device).long()
         steps = steps.expand(b) if steps.ndim == 0 else steps

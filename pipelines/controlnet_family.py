@@ -85,7 +85,6 @@ class ControlNetGenerator:
         projected = project_root(out * std + mean, hint.joints, hint.mask, np.asarray(lengths), joints_num)
         return ((projected - mean) / std).astype(np.float32)
 
-
     def latents(self, x_T: torch.Tensor, text_emb: torch.Tensor, words: dict[str, torch.Tensor], joints: torch.Tensor,
                 mask: torch.Tensor, lengths: torch.Tensor) -> torch.Tensor:
         """One-step latents (B, L, C) of these motions from their noise ``x_T``, refined when the row refines (a
