@@ -33,7 +33,8 @@ over a given list of timesteps; w ~ U[w_min, w_max]),
 and ``L_control`` (Eq. 9, :func:`control_loss`): ẑ0 decoded by the **frozen** VAE (gradients flow
 through it), global joints recovered differentiably (``recover_from_ric``), squared error to the
 hint averaged over the controlled (frame, joint) entries and the 3 axes (the reference divides the
-per-sample sum by #controlled entries × 3). Documented choice: the squared error in metres (the
+per-sample sum by #controlled entries × 3). That is Eq. 9 divided by 3: Eq. 9 sums the squared
+error over the axes, so the paper's λ is our 3λ. Documented choice: the squared error in metres (the
 issue's masked L2) rather than the reference's smooth-L1, which equals half of it below 1 m.
 """
 
@@ -173,7 +174,8 @@ def decode_joints(vae: MotionVAE, z0: Tensor, lengths: Tensor, num_frames: int, 
 
 
 def control_loss(joints: Tensor, hint: Tensor, mask: Tensor) -> Tensor:
-    """Eq. 9: squared error (metres²) over the batch's controlled entries and axes; 0 when nothing is controlled.
+    """Eq. 9 / 3: squared error (metres²) averaged over the batch's controlled entries and the 3 axes
+    (Eq. 9 sums the axes); 0 when nothing is controlled.
 
     Documented choice: one mean over all controlled entries of the batch (a sample with many
     keyframes weighs more), where the reference averages each sample's mean over the batch.

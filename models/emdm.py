@@ -43,7 +43,8 @@ Choices where the paper (or its code) is ambiguous or where we depart from it, e
    step owns its randomness. The discriminator always sees the real condition (never dropped), as in the code.
 4. Discriminator: the paper's D is a 7-layer MLP over the flattened padded tensors with no masking
    (App. C.2), so padding leaks into it. Ours is a small transformer over the frames of
-   ``Linear([x_t; x_{t+1}])`` plus a timestep token (DDGAN's 128-d sinusoid, dense-LeakyReLU-dense)
+   ``Linear([x_t; x_{t+1}])`` plus a timestep token (a 128-d sinusoid, then dense-LeakyReLU-dense, as
+   DDGAN's; its frequencies are ``exp(-ln(1e4) i / 64)`` where DDGAN divides by 63, which the MLP absorbs)
    and a condition token (text: Linear of the raw pooled embedding; action: a learned table, i.e. a
    Linear of the one-hot), padded frames masked as keys and excluded from a masked mean pool, then
    an MLP head to one logit. Padding therefore cannot change D's output.

@@ -71,7 +71,11 @@ Choices (each deliberate; "code" = the released MotionDiffuse code):
    has no gradient where two predictions agree, and its sum over all ordered pairs counts each pair
    twice (plus zero diagonal terms). Sign as the paper: ``+``; since the sampler subtracts eps from
    x_t, this moves x_t down the disagreement's gradient. The term is exactly 0 when all parts share
-   one text (identical predictions). ``lambda1 = 0.01`` (the paper's value for Fig. 5).
+   one text (identical predictions). ``lambda1 = 0.01``: the paper's number for Fig. 5, not its
+   strength. Per pair the squared form's gradient ``2 J^T d`` (``d = eps_i - eps_j``, ``J`` its Jacobian)
+   is ``||d||`` times the plain norm's over ordered pairs (``2 J^T d / ||d||``), with ``||d||`` over the
+   whole batch's tensor, so the same lambda pulls harder the more the parts disagree. The demos were
+   measured at 0.01 and at 0, 0.1 and 1 (docs/motiondiffuse.md, "Fine-grained control").
    The named parts (:func:`part_feature_mask`; the paper names no dims) give each joint's root-relative
    position and rotation dims to the joint's part, and the velocity dims of EVERY joint, with the root
    features, to the part that holds the root. HumanML3D's joint velocity is the global velocity in the
@@ -85,7 +89,7 @@ Choices (each deliberate; "code" = the released MotionDiffuse code):
    which doubles the noise scale there; on frames covered once the two agree). The correction is
    ``lambda2 grad_{x_t} sum_{i<j} ||O_ij . (eps'_i - eps'_j)||^2`` with O_ij the frames shared by windows
    i and j: outside the overlap the zero-padded difference is just +-eps_i, whose gradient would only
-   shrink the predictions. ``lambda2 = 0.01``. All samples of the batch share the segment
+   shrink the predictions. ``lambda2 = 0.01`` (the same caveat as lambda1's). All samples of the batch share the segment
    boundaries (texts may differ per sample) and have length N.
 10. Both compositions are ``model_fn(x_t, t) -> eps`` for :func:`models.diffusion.ddpm_sample` /
     :func:`models.diffusion.ddim_sample`. They call the network once per part/segment with the

@@ -11,7 +11,9 @@
 - :func:`emdm_rows`, :func:`emdm_generator`, :func:`emdm_action_rows`, :func:`emdm_action_generator`:
   the registry's entries
   (``pipelines/registry.py``); the guidance scales are ``sample.emdm_guidance`` for text and
-  ``sample.emdm_action_guidance`` for action labels (EMDM's setting: 2.5 for both).
+  ``sample.emdm_action_guidance`` for action labels. EMDM's released evaluation uses 2.5 for text and
+  none for action labels (``--cond_mask_prob 0 --guidance_param 1``); the paper states neither, and the
+  ``paper`` profile follows the code.
 
 NFE counts network evaluations per sample: ``2 T`` with guidance (the two passes run as one batched
 forward, but each sample is evaluated twice, as MLD's rows count it), ``T`` at guidance 1.

@@ -80,19 +80,20 @@ def text_inputs(denoiser: MLDDenoiser, text: TextBatch) -> tuple[torch.Tensor, d
 
 
 def ddim_spacing(num_steps: int, num_train_steps: int) -> TimestepSpacing:
-    """MLD's DDIM grid for ``num_steps`` n of T: its published ``leading`` grid (``steps_offset`` 1) for
-    10 <= n < T, else ``trailing``, whose first step is T - 1.
+    """MLD's DDIM grid for ``num_steps`` n of T: its published ``leading`` grid (``steps_offset`` 1) where
+    that grid starts in the last tenth of the schedule, else ``trailing``, whose first step is T - 1.
 
     Sampling starts from z_T ~ N(0, I), the latent of the last timestep. The leading grid's first step is
-    (n - 1) (T // n) + 1: 981 for 50 steps and 901 for 10 (within the last tenth of the schedule), but
-    751, 667, 501 and 1 for 4, 3, 2 and 1 step, where pure noise is handed to the network as a much less
-    noisy latent (with one step the network is asked only at t = 1 and returns about the noise: MLD-DDIM1
-    scored chance R-precision); at n = T it would leave the schedule. So the few-step baselines of
-    MotionLCM's Table 4 (MLD-DDIM1/2/4) use the trailing grid, which starts at pure noise, and MLD-DDIM50
-    keeps MLD's own sampler (the two grids score alike at 50 steps; at 2 and 4 steps the leading grid
-    scored better: docs/findings.md, 2026-12-07 (late morning)).
+    (n - 1) (T // n) + 1: 981 for 50 steps and 901 for 10, but 751, 667, 501 and 1 for 4, 3, 2 and 1 step,
+    and below 0.9 T again for many n above 111 (889 for 112, 799 for 400, n itself for n from 501 to 899),
+    where pure noise would be handed to the network as a much less noisy latent (with one step the network
+    is asked only at t = 1 and returns about the noise: MLD-DDIM1 scored chance R-precision); at n = T it
+    would leave the schedule. So the few-step baselines of MotionLCM's Table 4 (MLD-DDIM1/2/4) use the
+    trailing grid, which starts at pure noise, and MLD-DDIM50 keeps MLD's own sampler (the two grids score
+    alike at 50 steps: docs/findings.md, 2026-12-07 (late morning)).
     """
-    return "leading" if 10 <= num_steps < num_train_steps else "trailing"
+    first = (num_steps - 1) * (num_train_steps // num_steps) + 1
+    return "leading" if num_steps < num_train_steps and first >= 0.9 * num_train_steps else "trailing"
 
 
 class MLDGenerator:
@@ -138,7 +139,11 @@ class MotionLCMGenerator:
 
 
 class VAEReconstruction:
-    """The motion VAE's encode (posterior mean) -> decode of real motions."""
+    """The motion VAE's encode (posterior mean) -> decode of real motions.
+
+    A departure: MLD's and MotionLCM's ``vae`` rows decode a posterior sample. The mean makes the row
+    deterministic; with ``tiny``'s ``logvar_offset`` the posterior's sigma is small beside the spread of
+    its means, but under the ``paper`` profile (offset 0) the two differ more."""
 
     name = "VAE"
 
@@ -199,7 +204,8 @@ def motionlcm_row_names(params: dict[str, Any]) -> list[str]:
 
 
 def motionlcm_rows(ctx: EvalContext) -> list[Generator]:
-    """MotionLCM with 1, 2 and 4 steps (one load)."""
+    """MotionLCM with 1, 2 and 4 steps (one load), all at ``sample.motionlcm_guidance`` (V2's code has a
+    scale per step count; docs/motionlcm.md, "Choices")."""
     first = _motionlcm(ctx, 1, ctx.params["sample"]["motionlcm_guidance"])
     return [first] + [MotionLCMGenerator(f"MotionLCM-{n}", first.student, first.vae, first.schedule, n,
                                          first.w + 1.0) for n in sorted(TIMESTEPS)[1:]]

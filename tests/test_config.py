@@ -77,6 +77,11 @@ def test_paper_profile_is_mlds_published_architecture():
         7.5, "scaled_linear", 1000, 1e-4)
     assert vae["kl_weight"] == 1e-4 and vae["loop"]["length_buckets"] == 0
     assert (vae["joint_space"], vae["joint_weight"]) == ("global", 1.0)  # MLD's joint loss
+    # MLD's optimisation for both: AdamW with torch's default decay, no schedule, no clipping; batch 128 / 64
+    schedule = ("lr_schedule", "warmup_steps", "grad_clip")
+    for section, batch in ((vae, 128), (mld, 64)):
+        assert (section["weight_decay"], section["loop"]["batch_size"], *(section["loop"][k] for k in schedule)) == (
+            0.01, batch, "constant", 0, 0.0)
     lcm = paper["distill_lcm"]  # MotionLCM V2's distillation settings
     assert (tuple(lcm["w_range"]), lcm["ema_decay"], lcm["num_ddim_steps"], lcm["distance"], lcm["huber_c"]) == (
         (5.0, 15.0), 0.95, 10, "huber", 0.5)
@@ -95,8 +100,9 @@ def test_paper_profile_keeps_motiondiffuses_optimiser_and_sampler():
 
 def test_paper_profile_keeps_emdms_constant_rates_and_lambdas():
     """`scale=paper` is EMDM's Adam rates, constant (its cosine never decays within training), its
-    λ of Eq. 12 per condition, its action model trained from scratch and its guidance 2.5 for both,
-    whatever `tiny` does."""
+    λ of Eq. 12 per condition, its action model trained from scratch, and its released code's
+    guidance: 2.5 for text, none for action labels (trained without a null label), whatever `tiny`
+    does."""
     params = compose_params(["scale=paper"])
     text, action = params["train_emdm"], params["train_emdm_action"]
     schedule = ("lr_schedule", "warmup_steps", "min_lr_ratio")
@@ -106,7 +112,8 @@ def test_paper_profile_keeps_emdms_constant_rates_and_lambdas():
     assert (text["geometric_lambda"], action["geometric_lambda"]) == (0.0, 1.0)
     assert (text["ema_decay"], action["ema_decay"]) == (0.9999, 0.9999)
     assert action["init_from"] is None and action["geometric_weight"] is None  # R = 1 for action
-    assert (params["sample"]["emdm_guidance"], params["sample"]["emdm_action_guidance"]) == (2.5, 2.5)
+    assert (params["sample"]["emdm_guidance"], params["sample"]["emdm_action_guidance"]) == (2.5, 1.0)
+    assert (text["p_uncond"], action["p_uncond"]) == (0.1, 0.0)
     assert compose_params([])["train_emdm_action"]["init_from"] == "train_emdm"
 
 

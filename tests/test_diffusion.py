@@ -407,6 +407,21 @@ def test_lcm_perfect_x0_predictor_returns_x0(num_steps: int) -> None:
     torch.testing.assert_close(out, x0, atol=1e-6, rtol=1e-6)
 
 
+def test_lcm_sampler_applies_c_skip_and_c_out_where_they_matter() -> None:
+    """On the usual grids c_skip < 3e-8 and c_out > 1 - 2e-8, so only small t shows that the sampler
+    uses both: at t = 1 and 3, eps_hat = 0.5 x gives f = c_skip x + c_out x0_hat (known scalars)."""
+    s = NoiseSchedule.from_name("scaled_linear", 1000)
+    x_T = torch.randn(2, 3, generator=_gen(22), dtype=F64)
+    out = D.lcm_multistep_sample(lambda x, t: 0.5 * x, (2, 3), s, 1, None, "epsilon", x_T=x_T, timesteps=[1])
+    ab = s.alphas_cumprod[1]
+    x0_hat = (x_T - (1 - ab).sqrt() * 0.5 * x_T) / ab.sqrt()
+    torch.testing.assert_close(out, 0.25 / 100.25 * x_T + 10 / 100.25**0.5 * x0_hat)
+    assert (out - x0_hat).abs().max() > 1e-3  # without c_skip / c_out the test would fail
+    c_skip, c_out = D.lcm_boundary_scalings(3)
+    torch.testing.assert_close((c_skip, c_out), (torch.tensor(0.25 / 900.25, dtype=F64),
+                                                 torch.tensor(30 / 900.25**0.5, dtype=F64)))
+
+
 def test_lcm_multistep_renoises_with_fresh_noise() -> None:
     s = NoiseSchedule.from_name("scaled_linear", 1000)
     seen: list[torch.Tensor] = []

@@ -678,7 +678,7 @@ def _grads_ok(module: nn.Module) -> bool:
     return all(p.grad is not None and torch.isfinite(p.grad).all() for p in module.parameters())
 
 
-def test_discriminator_step_scores_real_pairs_as_real_and_fake_pairs_as_fake() -> None:
+def test_discriminator_step_softplus_signs() -> None:
     """With a D that says 2 to every pair: real term softplus(-2) = 0.126928, fake term softplus(2) = 2.126928."""
     gen, _ = _nets()
 
@@ -690,6 +690,25 @@ def test_discriminator_step_scores_real_pairs_as_real_and_fake_pairs_as_fake() -
                                   generator_rng=_gen(2))
     assert d["real"].item() == pytest.approx(0.126928, abs=1e-6)
     assert d["fake"].item() == pytest.approx(2.126928, abs=1e-6)
+
+
+def test_discriminator_step_real_pairs_come_from_data_and_fake_pairs_from_g() -> None:
+    """Two generators, the same draws and a D that reads x_t: the real term cannot depend on G, the fake
+    term must (a swap of the two would fail both assertions)."""
+    gen, _ = _nets()
+    other, _ = _nets()
+    with torch.no_grad():
+        for q in other.parameters():
+            q.add_(0.5 * torch.randn(q.shape, generator=_gen(3)))
+
+    def reads_x_t(x_t, x_next, t, cond, lengths, **_):
+        return 10.0 * x_t.flatten(1).mean(1)
+
+    x0, cond = torch.randn(2, 6, D, generator=_gen(1)), torch.randn(2, E, generator=_gen(4))
+    a, b = (discriminator_step_losses(g, reads_x_t, EMDMSchedule(), x0, cond, [6, 4], step=1, generator_rng=_gen(2))
+            for g in (gen, other))
+    assert a["real"].item() == b["real"].item()
+    assert abs(a["fake"].item() - b["fake"].item()) > 1e-3
 
 
 def test_generators_adversarial_term_reaches_the_generator() -> None:

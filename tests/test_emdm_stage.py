@@ -153,7 +153,8 @@ def test_one_gan_step_updates_both_networks_and_r1_only_when_due() -> None:
     first = emdm_training.step(batch, ctx)  # step 0: R1 due
     assert {"loss", "g_adv", "geo", "recon", "pos", "vel", "foot", "d_loss", "d_real", "d_fake", "r1"} == set(first)
     assert all(torch.isfinite(v) and v.ndim == 0 and not v.requires_grad for v in first.values())
-    assert first["r1"] > 0 and first["loss"] > 100 * first["geo"] - 1e-3  # R = 100 for text, plus adv > 0
+    assert first["r1"] > 0  # R = 100 for text: the total is the adversarial term plus 100 x the geometric one
+    assert first["loss"] == pytest.approx(float(first["g_adv"] + 100 * first["geo"]), rel=1e-5)
     assert {"grad_norm/g", "grad_norm/d"} == set(ctx.extra_metrics)
     for name, model in comps.models.items():  # both optimisers stepped every tensor
         changed = [k for k, p in model.named_parameters() if not torch.equal(before[name][k], p.detach())]
@@ -162,7 +163,7 @@ def test_one_gan_step_updates_both_networks_and_r1_only_when_due() -> None:
     ctx.step = 1
     assert "r1" not in emdm_training.step(batch, ctx)
     ctx.step = 3
-    assert "r1" in emdm_training.step(batch, ctx)
+    assert emdm_training.step(batch, ctx)["r1"] > 0
 
 
 def test_action_condition_trains_on_labels_with_r_one() -> None:

@@ -304,9 +304,12 @@ def test_word_tokens_padding_and_order(word_tokens: str) -> None:
 
 @pytest.mark.parametrize("word_tokens", ["sequence", "cross_attention"])
 def test_word_tokens_null_caption_in_loss_and_sampler(schedule: NoiseSchedule, word_tokens: str) -> None:
-    """The unconditional pass is the null embedding with no word tokens, in training and in CFG."""
+    """The unconditional pass is the null embedding with no word tokens, in training and in CFG. The null
+    buffer is made non-zero, so a path that used zeros instead of it would fail."""
     net, vae = _denoiser(word_tokens=word_tokens, token_dim=12).eval(), _vae().eval()
     text, lengths = torch.randn(3, E, generator=_gen(0)), torch.tensor([8, 5, 3])
+    net.null_text.copy_(torch.randn(E, generator=_gen(9)))
+    null_text = net.null_text.clone().expand_as(text)
     tokens, mask = _words(3, 6)
     z0 = torch.randn(3, L, C, generator=_gen(1))
     out = mld_loss(net, schedule, z0, text, 1.0, _gen(7), text_tokens=tokens, text_mask=mask)
@@ -314,11 +317,11 @@ def test_word_tokens_null_caption_in_loss_and_sampler(schedule: NoiseSchedule, w
     t = sample_timesteps(3, 1000, g)
     noise = torch.randn(z0.shape, generator=g)
     x_t = schedule.q_sample(z0, t, noise)
-    null = net(x_t, t, net.null_text_like(text), text_tokens=tokens, text_mask=torch.zeros_like(mask))
+    null = net(x_t, t, null_text, text_tokens=tokens, text_mask=torch.zeros_like(mask))
     torch.testing.assert_close(out["mse"], ((null - noise) ** 2).mean())
     x_T = torch.randn(3, L, C, generator=_gen(3))
     kw = {"num_steps": 4, "x_T": x_T, "text_tokens": tokens, "text_mask": mask}
-    uncond = ddim_sample(lambda x, t: net(x, t, net.null_text_like(text), text_tokens=tokens,
+    uncond = ddim_sample(lambda x, t: net(x, t, null_text, text_tokens=tokens,
                                           text_mask=torch.zeros_like(mask)), (3, L, C), schedule, 4, x_T=x_T)
     torch.testing.assert_close(sample_mld(net, vae, schedule, text, lengths, guidance=0.0, **kw),
                                vae.decode(uncond, lengths), atol=1e-5, rtol=1e-5)
@@ -345,11 +348,17 @@ def test_pad_tokens() -> None:
 
 def test_mld_rows_start_their_ddim_grid_at_pure_noise(schedule: NoiseSchedule) -> None:
     """MLD's published leading grid where it starts in the last tenth of the schedule (50 and 10 steps), the
-    trailing grid for the few-step rows, whose leading grid would start at t = 751, 501 or 1."""
+    trailing grid elsewhere: the few-step rows, whose leading grid would start at t = 751, 501 or 1, and
+    step counts such as 112, 400 or 600, whose leading grid starts at 889, 799 or 600."""
+    from models.diffusion import ddim_timesteps
     from models.generator import TextBatch
     from pipelines.mld_family import MLDGenerator, ddim_spacing
 
-    assert [ddim_spacing(n, 1000) for n in (999, 150, 50, 10, 9, 4, 2, 1, 1000)] == ["leading"] * 4 + ["trailing"] * 5
+    leading = [100, 111, 50, 10, 200, 333, 999]
+    trailing = [112, 150, 300, 400, 501, 600, 9, 4, 2, 1, 1000]
+    assert [ddim_spacing(n, 1000) for n in leading + trailing] == ["leading"] * 7 + ["trailing"] * 11
+    for n in range(1, 1001):  # every count's grid starts in the last tenth, whichever spacing it gets
+        assert ddim_timesteps(1000, n, ddim_spacing(n, 1000))[0] >= 900, n
     net, vae = _denoiser().eval(), _vae().eval()
     seen: list[list[int]] = []
     forward = net.forward
