@@ -51,6 +51,8 @@ REFINE = [(int(steps), float(lr)) for steps, lr in (pair.split(":") for pair in
           os.environ.get("REFINE_SETTINGS", "5:0.1 10:0.1 20:0.1 30:0.1 10:0.05 10:0.3").split())]
 
 torch.set_num_threads(2)
+if len(sys.argv) < 2 or sys.argv[1] in ("-h", "--help") or "=" in sys.argv[1]:
+    raise SystemExit(__doc__)  # a name first: without this guard --help would start a training
 name, overrides = sys.argv[1], sys.argv[2:]
 source = Path(os.environ.get("ARTIFACTS", "artifacts")).resolve()
 art = source if name == "existing" else Path(f"/tmp/probe/cn_{name}")

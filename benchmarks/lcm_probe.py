@@ -22,6 +22,8 @@ from pipelines.stage import train  # noqa: E402
 from pipelines.validation import generator_scores  # noqa: E402
 from stages import distill_lcm  # noqa: E402
 
+if len(sys.argv) < 2 or sys.argv[1] in ("-h", "--help") or "=" in sys.argv[1]:
+    raise SystemExit(__doc__)  # a name first: without this guard --help would start a training
 name, overrides = sys.argv[1], sys.argv[2:]
 art = Path(f"/tmp/probe/art_{name}")
 art.mkdir(parents=True, exist_ok=True)

@@ -1,6 +1,6 @@
 """Foot skating and pelvis speed of the test motions a caption's words pick, real, through the VAE and generated.
 
-    python benchmarks/skating_by_caption.py [--words walk forward] [--models mld motionlcm] [key=value ...]
+    python benchmarks/skating_by_caption.py [key=value ...] [--words walk forward] [--models mld motionlcm]
 
 The evaluation's skating column averages over every test motion, most of which barely move their
 feet. This splits the test split in two: the motions with a caption holding every one of
@@ -85,6 +85,9 @@ def main() -> None:
     parser.add_argument("--models", nargs="*", default=["mld", "motionlcm"])
     parser.add_argument("overrides", nargs="*")
     args = parser.parse_args()
+    swallowed = [arg for arg in args.words + args.models if "=" in arg]
+    if swallowed:
+        parser.error(f"{swallowed}: key=value overrides go before --words and --models")
     torch.set_num_threads(2)
     params = load_params(args.overrides)
     ctx = EvalContext(params, artifacts_dir(params), repo_path(params, "features.out"))

@@ -1,6 +1,6 @@
 """Inference speed of several families' rows side by side, in one process, on the evaluation's timing.
 
-    python benchmarks/speed.py <family> [<family> ...] [--rows NAME ...] [--rounds 2] [key=value ...]
+    python benchmarks/speed.py <family> [<family> ...] [key=value ...] [--rows NAME ...] [--rounds 2]
 
 The pipeline's ``eval_speed`` stage does this for EMDM and MotionDiffuse (``speed.rows``); this script
 does it for any families: it builds the named families' generator rows from ``paths.artifacts`` and
@@ -35,6 +35,8 @@ def main() -> None:
     parser.add_argument("--rows", nargs="*", default=None, help="row names (default: every generator row)")
     parser.add_argument("--rounds", type=int, default=2, help="timing rounds, the row order alternating")
     args = parser.parse_args()
+    if any("=" in row for row in args.rows or []):
+        parser.error(f"--rows {args.rows}: key=value overrides go before --rows")
     names = [arg for arg in args.families if "=" not in arg]
     params = load_params([arg for arg in args.families if "=" in arg])
     cfg = eval_config(params["evaluate"])
