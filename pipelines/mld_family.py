@@ -17,7 +17,7 @@ import numpy as np
 import torch
 
 from data.motion_dataset import pad_tokens
-from models.diffusion import NoiseSchedule, TimestepSpacing
+from models.diffusion import NoiseSchedule, TimestepSpacing, ddim_timesteps
 from models.generator import CPU, Generator, Reconstructor, TextBatch, device_of
 from models.mld import MLDConfig, MLDDenoiser, sample_mld
 from models.motionlcm import TIMESTEPS, sample_motionlcm
@@ -92,8 +92,9 @@ def ddim_spacing(num_steps: int, num_train_steps: int) -> TimestepSpacing:
     trailing grid, which starts at pure noise, and MLD-DDIM50 keeps MLD's own sampler (the two grids score
     alike at 50 steps: docs/findings.md, 2026-12-07 (late morning)).
     """
-    first = (num_steps - 1) * (num_train_steps // num_steps) + 1
-    return "leading" if num_steps < num_train_steps and first >= 0.9 * num_train_steps else "trailing"
+    if num_steps < num_train_steps and int(ddim_timesteps(num_train_steps, num_steps)[0]) >= 0.9 * num_train_steps:
+        return "leading"
+    return "trailing"
 
 
 class MLDGenerator:
